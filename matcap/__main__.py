@@ -1,0 +1,5 @@
+import sys
+
+from matcap.cli import main
+
+sys.exit(main())

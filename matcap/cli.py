@@ -1,0 +1,71 @@
+"""`matcap` command line: thin entry points over library functions.
+
+Each sub-command lives in ``matcap/commands/<name>.py`` and exposes ``register(subparsers)``, which adds its
+parser and sets ``func`` (a callable taking the parsed ``argparse.Namespace`` and returning an exit code).
+Command modules import heavy libraries (torch, mitsuba) inside ``func`` only, so ``matcap --help`` is fast.
+
+Errors a user can fix (bad input, existing outputs, missing files) end with one line on stderr and exit code 2.
+Set ``MATCAP_DEBUG=1`` to get the traceback instead.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from matcap.errors import MatcapError
+
+COMMANDS = [
+    "capture",
+    "relight",
+    "gallery",
+    "export",
+    "eval",
+    "synth",
+    "train",
+    "models",
+    "weights",
+    "reference_check",
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="matcap",
+        description="Material capture and relighting: photos under several lights -> SVBRDF maps -> new light.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f"matcap.commands.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"matcap.commands.{name}":
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        code = args.func(args)
+    except KeyboardInterrupt:
+        print("matcap: interrupted", file=sys.stderr)
+        return 130
+    except (MatcapError, ValueError, OSError) as exc:
+        if os.environ.get("MATCAP_DEBUG"):
+            raise
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"matcap {args.command}: error: {message}", file=sys.stderr)
+        return 2
+    return int(code or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""One module per `matcap` sub-command; each exposes ``register(subparsers)``."""

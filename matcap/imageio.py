@@ -1,0 +1,220 @@
+"""Image files in and out, with explicit bit depth and colour encoding.
+
+Readers return the stored numbers (``uint8``, ``uint16`` or ``float32``) plus a description; converting to
+linear float is a separate, explicit step (:func:`to_linear_float`). Writers are atomic: they write a temporary
+file in the destination folder and rename it into place, so a crash never leaves a half-written image.
+
+Formats: PNG (8/16-bit), JPEG, TIFF (8/16-bit/float), OpenEXR (float, via the OpenEXR package; Mitsuba's EXR
+I/O can deadlock, see platform notes), Radiance HDR (via OpenCV). OpenCV keeps 16-bit exact; imageio does not.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from matcap.errors import MatcapError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
+
+
+@dataclass(frozen=True)
+class StoredImage:
+    """An image as stored on disk.
+
+    pixels: (H, W, 3) ``uint8`` / ``uint16`` / ``float32`` RGB (grey is repeated, alpha dropped).
+    """
+
+    pixels: np.ndarray
+    path: str
+
+    @property
+    def kind(self) -> str:
+        """``"8bit"``, ``"16bit"`` or ``"float"``."""
+        return {np.dtype(np.uint8): "8bit", np.dtype(np.uint16): "16bit"}.get(self.pixels.dtype, "float")
+
+
+def _cv2():
+    import cv2  # local: keeps `matcap --help` fast
+
+    return cv2
+
+
+def _to_rgb3(arr: np.ndarray, path: str) -> np.ndarray:
+    if arr.ndim == 2:
+        arr = np.repeat(arr[:, :, None], 3, axis=2)
+    elif arr.ndim == 3 and arr.shape[2] == 1:
+        arr = np.repeat(arr, 3, axis=2)
+    elif arr.ndim == 3 and arr.shape[2] >= 3:
+        arr = arr[:, :, :3]
+    else:
+        raise MatcapError(f"{path}: unsupported image layout {arr.shape}")
+    return np.ascontiguousarray(arr)
+
+
+def read_exr(path: str | os.PathLike) -> np.ndarray:
+    """Read an OpenEXR file as float32: (H, W, 3) for RGB(A) files, (H, W) for single-channel files."""
+    import OpenEXR
+
+    path = str(path)
+    try:
+        with OpenEXR.File(path) as f:
+            channels = f.channels()
+            if "RGB" in channels or "RGBA" in channels:
+                arr = channels.get("RGB", channels.get("RGBA")).pixels
+                arr = np.asarray(arr, dtype=np.float32)[:, :, :3]
+            elif all(c in channels for c in "RGB"):
+                arr = np.stack([np.asarray(channels[c].pixels, np.float32) for c in "RGB"], axis=2)
+            elif "Y" in channels:
+                arr = np.asarray(channels["Y"].pixels, np.float32)
+            elif len(channels) == 1:
+                arr = np.asarray(next(iter(channels.values())).pixels, np.float32)
+                if arr.ndim == 3 and arr.shape[2] == 1:
+                    arr = arr[:, :, 0]
+            else:
+                raise MatcapError(f"{path}: EXR channels {sorted(channels)} are not RGB or Y")
+    except MatcapError:
+        raise
+    except Exception as exc:  # OpenEXR raises plain Exceptions for broken files
+        raise MatcapError(f"{path}: cannot read EXR ({exc})") from None
+    return np.ascontiguousarray(arr)
+
+
+def read_image(path: str | os.PathLike) -> StoredImage:
+    """Read an image file as stored (no colour conversion). Raises :class:`MatcapError` if unreadable."""
+    path = str(path)
+    suffix = Path(path).suffix.lower()
+    if not os.path.isfile(path):
+        raise MatcapError(f"{path}: no such file")
+    if suffix == ".exr":
+        arr = read_exr(path)
+    else:
+        cv2 = _cv2()
+        flags = cv2.IMREAD_UNCHANGED if suffix != ".hdr" else (cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+        arr = cv2.imread(path, flags)
+        if arr is None:
+            raise MatcapError(f"{path}: cannot read image (corrupt or unsupported format)")
+        if arr.ndim == 3 and arr.shape[2] >= 3:
+            order = [2, 1, 0] + ([3] if arr.shape[2] == 4 else [])
+            arr = arr[:, :, order]
+    if arr.dtype not in (np.uint8, np.uint16):
+        arr = arr.astype(np.float32)
+    return StoredImage(_to_rgb3(arr, path), path)
+
+
+def check_finite(arr: np.ndarray, path: str) -> None:
+    """Raise a one-line error if a float image holds NaN or Inf."""
+    if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+        bad = int((~np.isfinite(arr)).any(axis=-1).sum()) if arr.ndim == 3 else int((~np.isfinite(arr)).sum())
+        raise MatcapError(f"{path}: {bad} pixel(s) are NaN or Inf")
+
+
+def _colour():
+    import warnings
+
+    with warnings.catch_warnings():  # colour-science warns that matplotlib is absent; we do not plot with it
+        warnings.simplefilter("ignore")
+        import colour
+    return colour
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """sRGB transfer function, decoding (IEC 61966-2-1), via colour-science."""
+    colour = _colour()
+    return np.asarray(colour.cctf_decoding(np.clip(x, 0.0, 1.0), function="sRGB"), dtype=np.float32)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """sRGB transfer function, encoding (IEC 61966-2-1), via colour-science."""
+    colour = _colour()
+    return np.asarray(colour.cctf_encoding(np.clip(x, 0.0, 1.0), function="sRGB"), dtype=np.float32)
+
+
+def to_linear_float(img: StoredImage, decode_srgb_8bit: bool = True) -> tuple[np.ndarray, str]:
+    """Convert a stored image to linear float32 (H, W, 3).
+
+    8-bit images are taken as sRGB-encoded and decoded unless ``decode_srgb_8bit`` is False; 16-bit and float
+    images are taken as linear. Returns the array and a word for what was done (``"srgb-decoded"``,
+    ``"linear"``).
+    """
+    arr = img.pixels
+    if arr.dtype == np.uint8:
+        x = arr.astype(np.float32) / 255.0
+        if decode_srgb_8bit:
+            return srgb_to_linear(x), "srgb-decoded"
+        return x, "linear"
+    if arr.dtype == np.uint16:
+        return arr.astype(np.float32) / 65535.0, "linear"
+    check_finite(arr, img.path)
+    return arr.astype(np.float32), "linear"
+
+
+# ----------------------------------------------------------------------------------------------- writing
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike):
+    """Yield a temporary path next to ``path`` (same suffix); rename it onto ``path`` on success."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(data)
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def quantize(x: np.ndarray, bits: int) -> np.ndarray:
+    """Round [0, 1] floats to unsigned integers of ``bits`` (8 or 16) bits."""
+    top = (1 << bits) - 1
+    dtype = np.uint8 if bits == 8 else np.uint16
+    return np.round(np.clip(np.nan_to_num(x), 0.0, 1.0) * top).astype(dtype)
+
+
+def write_png(path: str | os.PathLike, x: np.ndarray, bits: int = 16) -> None:
+    """Write (H, W), (H, W, 3) or (H, W, 4) values in [0, 1] as an 8- or 16-bit PNG, atomically.
+
+    The values are written as given: encode sRGB before calling if the file should be sRGB.
+    """
+    if bits not in (8, 16):
+        raise ValueError(f"bits must be 8 or 16, got {bits}")
+    q = quantize(np.asarray(x, dtype=np.float32), bits)
+    if q.ndim == 3:
+        q = q[:, :, [2, 1, 0, 3][: q.shape[2]]] if q.shape[2] in (3, 4) else q
+    with atomic_path(path) as tmp:
+        if not _cv2().imwrite(tmp, q):
+            raise MatcapError(f"{path}: cannot write PNG")
+
+
+def write_exr(path: str | os.PathLike, x: np.ndarray, half: bool = False) -> None:
+    """Write float (H, W) or (H, W, 3) data as OpenEXR (ZIP compression), atomically."""
+    import OpenEXR
+
+    arr = np.ascontiguousarray(np.asarray(x, dtype=np.float16 if half else np.float32))
+    if arr.ndim == 2:
+        channels = {"Y": arr}
+    elif arr.ndim == 3 and arr.shape[2] == 3:
+        channels = {"RGB": arr}
+    else:
+        raise ValueError(f"write_exr expects (H, W) or (H, W, 3), got {arr.shape}")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path) as tmp:
+        with OpenEXR.File(header, channels) as f:
+            f.write(tmp)

@@ -1,0 +1,1 @@
+"""SDM-UniPS networks: configuration presets, model, checkpoints, training."""

@@ -1,0 +1,50 @@
+"""Pick the Mitsuba variant once per process: ``llvm_ad_rgb`` where it works, else ``scalar_rgb``.
+
+``llvm_ad_rgb`` needs libLLVM >= 17 (Debian: ``apt-get install libllvm19``); older LLVMs abort renders with
+"Cannot select: fminimum". We probe it in a child process so an abort cannot take the caller down.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import warnings
+
+_PROBE = r"""
+import mitsuba as mi
+mi.set_variant("llvm_ad_rgb")
+scene = mi.load_dict({"type": "scene", "integrator": {"type": "path"},
+    "sensor": {"type": "orthographic", "film": {"type": "hdrfilm", "width": 4, "height": 4}},
+    "shape": {"type": "rectangle"}, "light": {"type": "constant"}})
+img = mi.render(scene, spp=1)
+print(float(mi.TensorXf(img).numpy().mean()))
+"""
+
+_chosen: str | None = None
+
+
+def choose_variant(prefer: str | None = None, quiet: bool = False) -> str:
+    """Set and return the Mitsuba variant. ``MATCAP_MITSUBA_VARIANT`` or ``prefer`` force one."""
+    global _chosen
+    import mitsuba as mi
+
+    if _chosen is not None:
+        return _chosen
+    forced = prefer or os.environ.get("MATCAP_MITSUBA_VARIANT")
+    if forced:
+        mi.set_variant(forced)
+        _chosen = forced
+        return forced
+    try:
+        ok = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, timeout=120).returncode == 0
+    except (subprocess.TimeoutExpired, OSError):
+        ok = False
+    _chosen = "llvm_ad_rgb" if ok else "scalar_rgb"
+    if not ok and not quiet:
+        warnings.warn(
+            "Mitsuba's llvm_ad_rgb variant does not work here (needs libLLVM >= 17, e.g. `apt-get install libllvm19`); "
+            "rendering with the slower scalar_rgb variant.",
+            stacklevel=2,
+        )
+    mi.set_variant(_chosen)
+    return _chosen
