@@ -1,0 +1,379 @@
+"""From a folder of photos (one camera, several unknown lights) to SVBRDF maps.
+
+Pipeline: read the folder (:func:`load_capture`) -> choose up to K images -> crop to the mask's box, pad (never
+squash) to a square, resize to the network's native side (or pad to a multiple of it and use the scalable
+polyphase mode for larger inputs) -> normalise -> SDM-UniPS normal network (+ BRDF network when available) ->
+undo the geometry -> :class:`MaterialMaps`.
+"""
+from __future__ import annotations
+
+import os
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from matcap import imageio
+from matcap.errors import MatcapError
+from scenes.materialmaps import MaterialMaps
+
+#: Files in a capture folder that are not photos: masks and ground-truth maps.
+_SKIP = re.compile(
+    r"^(mask|.*\.mask|normal|normal_gt|basecolor|base_color|albedo|roughness|metallic|height|relight)([._-].*)?$",
+    re.IGNORECASE,
+)
+_MASK = re.compile(r"^(mask|.*\.mask)$", re.IGNORECASE)
+
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "networks" / "weights"
+DEFAULT_WEIGHTS = {"normal": WEIGHTS_DIR / "normal_small.safetensors", "brdf": WEIGHTS_DIR / "brdf_small.safetensors"}
+
+
+@dataclass
+class Capture:
+    """A folder of photos, decoded to linear light.
+
+    images: list of (H, W, 3) float32 linear RGB; mask: (H, W) bool or None.
+    """
+
+    images: list[np.ndarray]
+    files: list[str]
+    mask: np.ndarray | None = None
+    mask_file: str | None = None
+    colour: str = "linear"
+    skipped: list[str] = field(default_factory=list)
+
+
+def _natural_key(name: str):
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """(H, W) bool mask from an image file (> 0 in any channel is foreground, > 0.5 for float files)."""
+    stored = imageio.read_image(path)
+    px = stored.pixels
+    mask = px.max(axis=2) > (0.5 if px.dtype.kind == "f" else 0)
+    if shape is not None and mask.shape != tuple(shape):
+        raise MatcapError(
+            f"{path}: mask is {mask.shape[1]}x{mask.shape[0]} but the images are {shape[1]}x{shape[0]} (W x H)"
+        )
+    return mask
+
+
+def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = None, linear: bool = False) -> Capture:
+    """Read every photo of ``folder``; ``mask.*`` / ``*.mask.*`` is the mask unless ``mask`` names one.
+
+    8-bit images are decoded from sRGB unless ``linear``; 16-bit and float images are taken as linear.
+    Raises :class:`MatcapError` for no/one image, mixed sizes, unreadable files, NaN/Inf, a mask of another size.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise MatcapError(f"{folder}: not a folder of images")
+    photos, skipped, found_mask = [], [], None
+    for p in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name)):
+        if not p.is_file() or p.suffix.lower() not in imageio.IMAGE_SUFFIXES or p.name.startswith("."):
+            continue
+        stem = p.name[: -len(p.suffix)]
+        if _SKIP.match(stem):
+            if _MASK.match(stem) and found_mask is None:
+                found_mask = p
+            else:
+                skipped.append(p.name)
+            continue
+        photos.append(p)
+    if not photos:
+        raise MatcapError(f"{folder}: no images found (PNG, JPEG, TIFF, EXR or HDR)")
+    if len(photos) < 2:
+        raise MatcapError(f"{folder}: only one image ({photos[0].name}); photometric stereo needs at least 2 lights")
+    images, kinds, size = [], set(), None
+    for p in photos:
+        stored = imageio.read_image(p)
+        if size is None:
+            size = stored.pixels.shape[:2]
+        elif stored.pixels.shape[:2] != size:
+            raise MatcapError(
+                f"{p.name} is {stored.pixels.shape[1]}x{stored.pixels.shape[0]} but {photos[0].name} is "
+                f"{size[1]}x{size[0]}; all images must share one size"
+            )
+        arr, how = imageio.to_linear_float(stored, decode_srgb_8bit=not linear)
+        kinds.add(f"{stored.kind}:{how}")
+        images.append(arr)
+    mask_path = Path(mask) if mask is not None else found_mask
+    mask_arr = read_mask(mask_path, size) if mask_path is not None else None
+    if mask_arr is not None and not mask_arr.any():
+        raise MatcapError(f"{mask_path}: the mask is empty")
+    colour = ", ".join(
+        sorted(
+            {
+                "8bit:srgb-decoded": "8-bit sRGB decoded to linear",
+                "8bit:linear": "8-bit taken as linear (--linear)",
+                "16bit:linear": "16-bit taken as linear",
+                "float:linear": "float taken as linear",
+            }[k]
+            for k in kinds
+        )
+    )
+    return Capture(images, [p.name for p in photos], mask_arr, str(mask_path) if mask_path else None, colour, skipped)
+
+
+# ------------------------------------------------------------------------------------------- models
+
+
+@dataclass
+class LoadedModel:
+    model: Any
+    config: Any
+    card: dict
+    path: str
+
+
+def resolve_weights(weights: Sequence[str | os.PathLike] | None) -> list[Path]:
+    """Weight files named by ``--weights`` (files or folders; ours or published), or the installed defaults."""
+    if not weights:
+        found = [p for p in DEFAULT_WEIGHTS.values() if p.exists()]
+        if not DEFAULT_WEIGHTS["normal"].exists():
+            raise MatcapError(
+                "no trained default model is installed; train one (`matcap train --target normal ...`) or import the "
+                "published SDM-UniPS checkpoints (`matcap weights import nml.pytmodel brdf.pytmodel --out DIR`) "
+                "and pass --weights DIR"
+            )
+        return found
+    files: list[Path] = []
+    for w in weights:
+        p = Path(w)
+        if p.is_dir():
+            inside = sorted(q for q in p.iterdir() if q.suffix in (".safetensors", ".pytmodel"))
+            if not inside:
+                raise MatcapError(f"{p}: no .safetensors or .pytmodel files in this folder")
+            files.extend(inside)
+        elif p.is_file():
+            files.append(p)
+        else:
+            raise MatcapError(f"{p}: no such weights file or folder")
+    return files
+
+
+def load_networks(weights: Sequence[str | os.PathLike] | None, device: str = "cpu") -> dict[str, "LoadedModel"]:
+    """{"normal": LoadedModel, "brdf": LoadedModel (if given)} from ``--weights`` or the installed defaults."""
+    out: dict[str, LoadedModel] = {}
+    for f in resolve_weights(weights):
+        loaded = load_network(f, device)
+        target = loaded.config.target
+        if target in out:
+            raise MatcapError(f"two {target} models given: {out[target].path} and {f}")
+        out[target] = loaded
+    if "normal" not in out:
+        raise MatcapError("--weights holds no normal model (a BRDF model alone cannot give normals)")
+    return {k: out[k] for k in sorted(out, key=lambda t: t != "normal")}
+
+
+# ------------------------------------------------------------------------------------------- geometry
+
+
+@dataclass
+class _Frame:
+    """How the original image maps into the square network input."""
+
+    box: tuple[int, int, int, int]  # y0, y1, x0, x1 of the crop in the original image
+    pad: tuple[int, int]  # (top, left) padding inside the square of side `side`
+    side: int  # square side before resizing
+    size: int  # network input side
+    scale: float  # size / side (1 when padded instead of resized)
+
+
+def _plan(shape: tuple[int, int], mask: np.ndarray | None, native: int, margin: int = 8) -> _Frame:
+    h, w = shape
+    if mask is not None:
+        ys, xs = np.nonzero(mask)
+        y0, y1 = max(int(ys.min()) - margin, 0), min(int(ys.max()) + 1 + margin, h)
+        x0, x1 = max(int(xs.min()) - margin, 0), min(int(xs.max()) + 1 + margin, w)
+    else:
+        y0, y1, x0, x1 = 0, h, 0, w
+    side = max(y1 - y0, x1 - x0)
+    pad = ((side - (y1 - y0)) // 2, (side - (x1 - x0)) // 2)
+    if side <= native:
+        size, scale = native, native / side
+    else:  # larger than native: pad to a multiple of native and run the scalable (polyphase) mode
+        size = int(np.ceil(side / native)) * native
+        pad = (pad[0] + (size - side) // 2, pad[1] + (size - side) // 2)
+        side, scale = size, 1.0
+    return _Frame((y0, y1, x0, x1), pad, side, size, scale)
+
+
+def _to_square(arr: np.ndarray, fr: _Frame, interp: str) -> np.ndarray:
+    import cv2
+
+    y0, y1, x0, x1 = fr.box
+    crop = arr[y0:y1, x0:x1]
+    out = np.zeros((fr.side, fr.side) + arr.shape[2:], dtype=arr.dtype)
+    out[fr.pad[0] : fr.pad[0] + crop.shape[0], fr.pad[1] : fr.pad[1] + crop.shape[1]] = crop
+    if fr.size != fr.side:
+        flag = cv2.INTER_CUBIC if interp == "cubic" else cv2.INTER_NEAREST
+        out = cv2.resize(out, (fr.size, fr.size), interpolation=flag)
+    return out
+
+
+def _from_square(arr: np.ndarray, fr: _Frame, shape: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    if fr.size != fr.side:
+        arr = cv2.resize(arr, (fr.side, fr.side), interpolation=cv2.INTER_CUBIC)
+    y0, y1, x0, x1 = fr.box
+    crop = arr[fr.pad[0] : fr.pad[0] + (y1 - y0), fr.pad[1] : fr.pad[1] + (x1 - x0)]
+    out = np.zeros(tuple(shape) + arr.shape[2:], dtype=np.float32)
+    out[y0:y1, x0:x1] = crop
+    return out
+
+
+def _native_side(config) -> int:
+    return int(getattr(config, "decoder_resolution", 2 * config.canonical_resolution))
+
+
+# ------------------------------------------------------------------------------------------- estimate
+
+
+def estimate(
+    images: Sequence[np.ndarray],
+    mask: np.ndarray | None = None,
+    *,
+    weights: Sequence[str | os.PathLike] | None = None,
+    max_images: int | None = None,
+    seed: int = 0,
+    device: str = "cpu",
+    pixel_samples: int | None = None,
+    bf16: bool = False,
+    progress: bool | Callable[[str, int, int], None] = False,
+    models: dict[str, LoadedModel] | None = None,
+) -> MaterialMaps:
+    """Recover SVBRDF maps from photos of one scene under different lights.
+
+    images: sequence of (H, W, 3) float32 linear RGB (at least 2); mask: (H, W) bool or None (whole image).
+    Returns :class:`MaterialMaps` at (H, W); BRDF maps only when a BRDF model is available. ``meta`` records the
+    model, settings and timings.
+    """
+    import torch
+
+    from networks.inference import predict, predict_scalable
+    from networks.preprocess import normalize_images
+
+    if len(images) < 2:
+        raise MatcapError(f"photometric stereo needs at least 2 images, got {len(images)}")
+    shape = images[0].shape[:2]
+    for i, im in enumerate(images):
+        if im.ndim != 3 or im.shape[2] != 3 or im.shape[:2] != shape:
+            raise MatcapError(f"image {i} has shape {im.shape}, expected {shape + (3,)}")
+    if mask is not None and mask.shape != shape:
+        raise MatcapError(f"mask has shape {mask.shape}, expected {shape}")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    if models is None:
+        models = load_networks(weights, device)
+    timings["load_s"] = time.perf_counter() - t0
+
+    order = np.arange(len(images))
+    if max_images is not None and max_images < len(images):
+        if max_images < 2:
+            raise MatcapError(f"--max-images must be at least 2, got {max_images}")
+        order = np.sort(np.random.default_rng(seed).choice(len(images), size=max_images, replace=False))
+    full_mask = mask if mask is not None else np.ones(shape, dtype=bool)
+
+    results: dict[str, np.ndarray] = {}
+    settings: dict[str, Any] = {}
+    for target, loaded in models.items():
+        t1 = time.perf_counter()
+        native = _native_side(loaded.config)
+        fr = _plan(shape, mask, native)
+        stack = np.stack([_to_square(images[i], fr, "cubic") for i in order])  # (N, S, S, 3)
+        msq = _to_square(full_mask.astype(np.uint8), fr, "nearest") > 0
+        x = torch.from_numpy(np.clip(stack, 0, None)).permute(0, 3, 1, 2).float().to(device)
+        m = torch.from_numpy(msq).to(device)
+        x = normalize_images(x, m.float().unsqueeze(0))
+        cb = None
+        if progress:
+            cb = _progress_callback(target, progress)
+        kwargs = dict(
+            pixel_samples=pixel_samples, seed=seed, progress=cb,
+            autocast_dtype=torch.bfloat16 if bf16 else None,
+        )
+        if fr.size > native:
+            out = predict_scalable(loaded.model, x, m, decoder_resolution=native, **kwargs)
+        else:
+            out = predict(loaded.model, x, m, **kwargs)
+        if target == "normal":
+            n = _from_square(out["normal"], fr, shape)
+            length = np.linalg.norm(n, axis=2, keepdims=True)
+            valid = full_mask & (length[:, :, 0] > 0.5)
+            results["normal"] = np.where(valid[:, :, None], n / np.maximum(length, 1e-8), 0.0).astype(np.float32)
+            results["mask"] = valid
+        else:
+            for key in ("base_color", "roughness", "metallic"):
+                results[key] = np.clip(_from_square(out[key], fr, shape), 0.0, 1.0)
+        timings[f"{target}_s"] = time.perf_counter() - t1
+        settings[target] = {"input_side": fr.size, "scalable": fr.size > native, "native_side": native,
+                            "crop_box_yyxx": list(fr.box), "weights": loaded.path, "card": loaded.card}
+    timings["total_s"] = time.perf_counter() - t0
+    mask_out = results["mask"]
+    for key in ("base_color", "roughness", "metallic"):
+        if key in results:
+            v = results[key]
+            results[key] = np.where(mask_out[..., None] if v.ndim == 3 else mask_out, v, 0.0).astype(np.float32)
+    meta = {
+        "images_used": [int(i) for i in order],
+        "seed": seed, "device": device, "bf16": bf16, "pixel_samples": pixel_samples,
+        "models": settings, "timings": timings,
+    }
+    return MaterialMaps(
+        normal=results["normal"], mask=mask_out, base_color=results.get("base_color"),
+        roughness=results.get("roughness"), metallic=results.get("metallic"), meta=meta,
+    )
+
+
+def _progress_callback(target: str, progress):
+    if callable(progress):
+        return lambda done, total: progress(target, done, total)
+    from tqdm import tqdm
+
+    bar = tqdm(total=None, desc=f"{target} network", unit="px", leave=False, dynamic_ncols=True)
+
+    def cb(done: int, total: int) -> None:
+        if bar.total != total:
+            bar.total = total
+        bar.n = done
+        bar.refresh()
+        if done >= total:
+            bar.close()
+
+    return cb
+
+
+def capture(
+    folder: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    mask: str | os.PathLike | None = None,
+    linear: bool = False,
+    overwrite: bool = False,
+    **estimate_kwargs,
+) -> tuple[MaterialMaps, Path]:
+    """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`)."""
+    from matcap.results import check_output_dir, write_result
+
+    check_output_dir(out, overwrite)  # fail before the expensive part
+    cap = load_capture(folder, mask=mask, linear=linear)
+    maps = estimate(cap.images, cap.mask, **estimate_kwargs)
+    used = [cap.files[i] for i in maps.meta["images_used"]]
+    maps.meta.update(
+        {
+            "tool": "matcap capture",
+            "input_folder": str(Path(folder).resolve()),
+            "inputs": used,
+            "mask_file": cap.mask_file,
+            "skipped_files": cap.skipped,
+            "colour_handling": cap.colour,
+            "image_size_wh": [cap.images[0].shape[1], cap.images[0].shape[0]],
+        }
+    )
+    write_result(maps, out, overwrite=overwrite)
+    return maps, Path(out)

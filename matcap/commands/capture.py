@@ -1,0 +1,84 @@
+"""`matcap capture PHOTOS/`: photos under several lights -> normal (+ BRDF) maps, optional relight and export."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _xyz(text: str) -> tuple[float, float, float]:
+    try:
+        x, y, z = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z (three numbers), got {text!r}") from None
+    return x, y, z
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "capture",
+        help="recover normal / base color / roughness / metallic maps from photos under several lights",
+        description="Recover SVBRDF maps from a folder of photos taken from one fixed camera under several lights.",
+    )
+    p.add_argument("photos", help="folder of images (PNG/JPEG/TIFF/EXR/HDR); mask.* in it is used as the mask")
+    p.add_argument("--out", help="result folder (default: <photos>-matcap next to the photos folder)")
+    p.add_argument("--mask", help="mask image (> 0 is the object); default: mask.* in the folder, else none")
+    p.add_argument("--weights", action="append", metavar="FILE_OR_DIR",
+                   help="model weights: our .safetensors or the published .pytmodel files, or a folder of them "
+                        "(repeatable; default: the bundled model)")
+    p.add_argument("--max-images", type=int, help="use at most K images (chosen at random with --seed)")
+    p.add_argument("--seed", type=int, default=0, help="seed for image subset and pixel sampling (default 0)")
+    p.add_argument("--linear", action="store_true", help="take 8-bit images as linear (default: decode sRGB)")
+    p.add_argument("--device", default="cpu", help="torch device, e.g. cpu, cuda, cuda:1 (default cpu)")
+    p.add_argument("--pixel-samples", type=int, help="pixels per sample set (default: the model's)")
+    p.add_argument("--bf16", action="store_true", help="run the networks under bfloat16 autocast (faster on CPU)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
+    p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
+    p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")
+    p.add_argument("--spp", type=int, help="samples per pixel for --relight renders")
+    p.add_argument("--export", metavar="DIR", help="also export an engine-ready texture set to DIR")
+    p.add_argument("--preset", default="gltf", help="texture-set preset for --export (gltf, unreal, unity-hdrp, blender)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from matcap.capture import capture
+    from matcap.errors import MatcapError
+
+    photos = Path(args.photos)
+    out = Path(args.out) if args.out else photos.resolve().parent / f"{photos.resolve().name}-matcap"
+    if args.max_images is not None and args.max_images < 2:
+        raise MatcapError(f"--max-images must be at least 2, got {args.max_images}")
+    if args.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise MatcapError(f"--device {args.device}: CUDA is not available in this torch build")
+    if args.export:
+        from matcap.results import check_output_dir
+
+        check_output_dir(args.export, args.overwrite)
+    maps, out = capture(
+        photos, out, mask=args.mask, linear=args.linear, overwrite=args.overwrite,
+        weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
+        pixel_samples=args.pixel_samples, bf16=args.bf16, progress=not args.quiet,
+    )
+    t = maps.meta["timings"]
+    print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "
+          f"{'normal + BRDF' if maps.has_brdf else 'normal'} maps, {t['total_s']:.1f} s)")
+    if args.relight or args.point:
+        from matcap.relight import relight
+
+        kwargs = {"spp": args.spp} if args.spp else {}
+        for env in args.relight or []:
+            relight(maps, env=env, out=out, **kwargs)
+        for pos in args.point or []:
+            relight(maps, point=pos, out=out, **kwargs)
+        print(f"relit renders in {out}/")
+    if args.export:
+        from matcap.export import export
+
+        export(maps, args.export, preset=args.preset, overwrite=args.overwrite)
+        print(f"texture set in {args.export}/")
+    return 0
