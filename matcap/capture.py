@@ -169,6 +169,27 @@ def load_networks(weights: Sequence[str | os.PathLike] | None, device: str = "cp
     return {k: out[k] for k in sorted(out, key=lambda t: t != "normal")}
 
 
+def load_network(path: Path, device: str = "cpu") -> LoadedModel:
+    """Load our safetensors weights or a published ``.pytmodel`` (never unpickled: ``weights_only=True``)."""
+    import torch
+
+    from networks.checkpoint import import_published, load_model
+    from networks.model import SDMUniPS
+
+    if path.suffix == ".pytmodel":
+        config, state = import_published(path)
+        model = SDMUniPS(config)
+        model.load_state_dict(state, strict=True)
+        model = model.to(device)
+        card = {"name": path.name, "source": "published SDM-UniPS checkpoint",
+                "licence": "MIT with a non-commercial clause (Ikehata); not redistributable"}
+    else:
+        model, config, card = load_model(path, device=device)
+    model.eval()
+    torch.set_grad_enabled(False)
+    return LoadedModel(model, config, card or {}, str(path))
+
+
 # ------------------------------------------------------------------------------------------- geometry
 
 
@@ -228,7 +249,9 @@ def _from_square(arr: np.ndarray, fr: _Frame, shape: tuple[int, int]) -> np.ndar
 
 
 def _native_side(config) -> int:
-    return int(getattr(config, "decoder_resolution", 2 * config.canonical_resolution))
+    """Side of the network input at inference: the training resolution recorded by `matcap train`, else the
+    published 512 (= 2 x canonical)."""
+    return int(config.extra.get("native_resolution", 2 * config.canonical_resolution))
 
 
 # ------------------------------------------------------------------------------------------- estimate

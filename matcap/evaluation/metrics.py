@@ -1,0 +1,73 @@
+"""Angular-error metrics for normal maps, and the error-map colouring.
+
+The angular error at a pixel is ``degrees(arccos(clip(dot(n_pred, n_gt), -1, 1)))`` after both vectors are
+normalised (computed as ``atan2(|a x b|, a . b)``, which is accurate for small angles too). Only pixels inside
+the mask count. A predicted vector of (near) zero length inside the mask -- a method that gave up on a pixel --
+is scored as 90 degrees. Ground-truth pixels of zero length are left out of the mask.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+THRESHOLDS_DEG = (10.0, 20.0, 30.0)
+
+
+def angular_error_map(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) angular error in degrees (float64); NaN outside ``mask`` and where ``gt`` is zero."""
+    pred = np.asarray(pred, dtype=np.float64)
+    gt = np.asarray(gt, dtype=np.float64)
+    if pred.shape != gt.shape or pred.shape[-1] != 3:
+        raise ValueError(f"normal maps must both be (..., 3) of one shape, got {pred.shape} and {gt.shape}")
+    valid = np.linalg.norm(gt, axis=-1) > 1e-8
+    if mask is not None:
+        valid &= np.asarray(mask, dtype=bool)
+    pn = np.linalg.norm(pred, axis=-1)
+    cross = np.linalg.norm(np.cross(pred, gt), axis=-1)
+    dot = np.sum(pred * gt, axis=-1)
+    err = np.degrees(np.arctan2(cross, dot))
+    err = np.where(pn > 1e-8, err, 90.0)
+    return np.where(valid, err, np.nan)
+
+
+def summarize_errors(err: np.ndarray) -> dict[str, float]:
+    """Statistics of the finite entries of an error map: mean, median, share under 10/20/30 degrees (0..1)."""
+    e = np.asarray(err, dtype=np.float64)
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        raise ValueError("no valid pixels to evaluate")
+    out = {"mae": float(e.mean()), "median": float(np.median(e)), "pixels": int(e.size)}
+    for t in THRESHOLDS_DEG:
+        out[f"under{int(t)}"] = float(np.mean(e < t))
+    return out
+
+
+def normal_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
+    """Mean angular error (``mae``), ``median``, ``under10``/``under20``/``under30`` (fractions) and ``pixels``."""
+    return summarize_errors(angular_error_map(pred, gt, mask))
+
+
+# Colour map for error maps: 0 deg dark blue -> blue -> cyan -> green -> yellow -> red -> dark red at 90 deg.
+_ANCHORS = np.array([
+    [0.00, 0.00, 0.00, 0.50],
+    [0.12, 0.00, 0.20, 1.00],
+    [0.30, 0.00, 0.85, 1.00],
+    [0.45, 0.20, 1.00, 0.40],
+    [0.62, 1.00, 1.00, 0.00],
+    [0.80, 1.00, 0.30, 0.00],
+    [1.00, 0.55, 0.00, 0.00],
+])
+
+
+def colorize_error(err: np.ndarray, max_deg: float = 90.0, background: float = 0.0) -> np.ndarray:
+    """(H, W) degrees -> (H, W, 3) RGB in [0, 1]; 0..``max_deg`` mapped blue->red, NaN -> ``background``."""
+    err = np.asarray(err, dtype=np.float64)
+    t = np.clip(np.nan_to_num(err, nan=0.0) / max_deg, 0.0, 1.0)
+    rgb = np.stack([np.interp(t, _ANCHORS[:, 0], _ANCHORS[:, c]) for c in (1, 2, 3)], axis=-1)
+    rgb[~np.isfinite(err)] = background
+    return rgb.astype(np.float32)
+
+
+def colorbar(height: int, width: int = 12, max_deg: float = 90.0) -> np.ndarray:
+    """(height, width, 3) vertical colour bar, ``max_deg`` at the top, 0 at the bottom."""
+    col = np.linspace(max_deg, 0.0, max(height, 2))[:, None]
+    return colorize_error(np.repeat(col, width, axis=1), max_deg)

@@ -1,0 +1,167 @@
+"""Training samples drawn from `matcap synth` datasets (numpy only; reads each scene's ``data.npz``).
+
+A scene folder holds ``data.npz`` with ``basis`` (B, H, W, 3) float16 linear renders of the basis lights,
+``basis_kind`` (B,) ("env" / "directional" / "point"), ``images`` (10, H, W, 3) float16, ``normal`` (H, W, 3),
+``mask`` (H, W) bool, ``base_color`` (H, W, 3), ``roughness`` (H, W), ``metallic`` (H, W).
+
+Every random choice of a sample comes from ``numpy.random.default_rng([seed, step, rank, slot])``, so the data
+order is a pure function of the step: training resumes bit-for-bit without saving loader state, and
+data-parallel ranks draw different samples without a sampler.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: The five light configurations of PS-Mix: (a) env, (b) directional, (c) point, (d) a+b, (e) a+c.
+CONFIGURATIONS = (("env",), ("directional",), ("point",), ("env", "directional"), ("env", "point"))
+
+
+def list_scenes(root: str | Path) -> list[Path]:
+    """Scene folders of a dataset (those with ``data.npz``), in the manifest's order when there is one."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ValueError(f"{root}: not a dataset folder")
+    manifest = root / "manifest.json"
+    names: list[str] = []
+    if manifest.exists():
+        try:
+            names = list(json.loads(manifest.read_text()).get("scenes", []))
+        except json.JSONDecodeError:
+            names = []
+    scenes = [root / n for n in names if (root / n / "data.npz").exists()]
+    if not scenes:
+        scenes = sorted(p.parent for p in root.glob("*/data.npz"))
+    if not scenes:
+        raise ValueError(f"{root}: no scenes with data.npz (make some with `matcap synth --out {root}`)")
+    return scenes
+
+
+@dataclass
+class SampleSpec:
+    """How training samples are drawn (all fields documented; defaults follow the paper where it says)."""
+
+    resolution: int = 256
+    """Side of the square training crop fed to the network."""
+    min_images: int = 3
+    """Fewest images per sample (K is drawn uniformly in [min_images, max_images])."""
+    max_images: int = 6
+    """Most images per sample."""
+    pixel_samples: int = 2048
+    """Pixels per sample where the loss is evaluated (one attention sample set)."""
+    fresh_combination_prob: float = 0.75
+    """Probability to synthesise each image from the stored basis renders instead of using a stored image."""
+    drop_mask_prob: float = 0.5
+    """Probability that the network gets no mask (all ones) so mask-free scenes are learned."""
+    min_crop: float = 0.6
+    """Smallest crop side as a fraction of the scene side (random crop + rescale augmentation)."""
+
+
+def _combine(basis: np.ndarray, kinds: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One image as a random non-negative combination of basis renders following a PS-Mix configuration."""
+    available = set(kinds.tolist())
+    configs = [c for c in CONFIGURATIONS if set(c) <= available] or [(kinds[0],)]
+    config = configs[rng.integers(len(configs))]
+    out = np.zeros(basis.shape[1:], dtype=np.float32)
+    for kind in config:
+        idx = np.flatnonzero(kinds == kind)
+        j = idx[rng.integers(len(idx))]
+        weight = rng.uniform(0.3, 1.0) if kind == "env" else rng.uniform(0.5, 2.0)
+        tint = rng.uniform(0.85, 1.15, size=3).astype(np.float32)  # light colour
+        out += basis[j].astype(np.float32) * (weight * tint)
+    return out
+
+
+def _resize(arr: np.ndarray, size: int, nearest: bool = False) -> np.ndarray:
+    import cv2
+
+    if arr.shape[0] == size and arr.shape[1] == size:
+        return arr
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA if arr.shape[0] > size else cv2.INTER_LINEAR
+    if arr.dtype == bool:
+        return cv2.resize(arr.astype(np.uint8), (size, size), interpolation=cv2.INTER_NEAREST).astype(bool)
+    return cv2.resize(arr, (size, size), interpolation=interp)
+
+
+def load_scene(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path / "data.npz", allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def draw_sample(scene: dict[str, np.ndarray], spec: SampleSpec, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """One training sample from a loaded scene.
+
+    Returns images (K, 3, R, R) float32 linear (not yet normalised), input_mask (R, R) float32 (all ones when
+    dropped), loss_mask (R, R) bool, normal (R, R, 3), base_color (R, R, 3), roughness (R, R), metallic (R, R),
+    pixel_index (m,) int64 flat indices inside loss_mask (sampled with replacement if it has fewer than m pixels).
+    """
+    k = int(rng.integers(spec.min_images, spec.max_images + 1))
+    basis, kinds = scene.get("basis"), scene.get("basis_kind")
+    stored = scene["images"]
+    imgs = []
+    for _ in range(k):
+        if basis is not None and len(basis) and rng.random() < spec.fresh_combination_prob:
+            imgs.append(_combine(basis, np.asarray(kinds).astype(str), rng))
+        else:
+            imgs.append(stored[rng.integers(len(stored))].astype(np.float32) * rng.uniform(0.5, 1.5))
+    h, w = scene["mask"].shape
+    side = int(round(min(h, w) * rng.uniform(spec.min_crop, 1.0)))
+    y0, x0 = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
+    sl = (slice(y0, y0 + side), slice(x0, x0 + side))
+    R = spec.resolution
+    images = np.stack([_resize(np.ascontiguousarray(im[sl]), R) for im in imgs]).transpose(0, 3, 1, 2)
+    gt_mask = _resize(np.ascontiguousarray(scene["mask"][sl]), R, nearest=True)
+    normal = _resize(np.ascontiguousarray(scene["normal"][sl].astype(np.float32)), R, nearest=True)
+    length = np.linalg.norm(normal, axis=2)
+    loss_mask = gt_mask & (length > 0.5)
+    normal = np.where(loss_mask[..., None], normal / np.maximum(length, 1e-6)[..., None], 0.0)
+    out = {
+        "images": np.ascontiguousarray(images, dtype=np.float32),
+        "input_mask": np.ones((R, R), np.float32) if rng.random() < spec.drop_mask_prob else gt_mask.astype(np.float32),
+        "loss_mask": loss_mask,
+        "normal": normal.astype(np.float32),
+        "base_color": _resize(np.ascontiguousarray(scene["base_color"][sl].astype(np.float32)), R, nearest=True),
+        "roughness": _resize(np.ascontiguousarray(scene["roughness"][sl].astype(np.float32)), R, nearest=True),
+        "metallic": _resize(np.ascontiguousarray(scene["metallic"][sl].astype(np.float32)), R, nearest=True),
+    }
+    valid = np.flatnonzero(loss_mask.ravel())
+    if len(valid) == 0:
+        valid = np.arange(R * R)
+    m = spec.pixel_samples
+    out["pixel_index"] = rng.choice(valid, size=m, replace=len(valid) < m).astype(np.int64)
+    return out
+
+
+class SceneCache:
+    """Keeps loaded scenes in memory (bounded: about 7 MB per 256^2 scene)."""
+
+    def __init__(self, scenes: list[Path], max_items: int = 512):
+        self.scenes = scenes
+        self.max_items = max_items
+        self._cache: dict[int, dict[str, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def get(self, i: int) -> dict[str, np.ndarray]:
+        if i not in self._cache:
+            if len(self._cache) >= self.max_items:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[i] = load_scene(self.scenes[i])
+        return self._cache[i]
+
+
+def draw_batch(cache: SceneCache, spec: SampleSpec, batch: int, seed: int, step: int, rank: int = 0):
+    """A batch of ``batch`` samples with a common K (so they stack): dict of (B, ...) numpy arrays."""
+    rng = np.random.default_rng([seed, step, rank])
+    k = int(rng.integers(spec.min_images, spec.max_images + 1))
+    fixed = SampleSpec(**{**spec.__dict__, "min_images": k, "max_images": k})
+    samples = []
+    for slot in range(batch):
+        srng = np.random.default_rng([seed, step, rank, slot])
+        scene = cache.get(int(srng.integers(len(cache))))
+        samples.append(draw_sample(scene, fixed, srng))
+    return {key: np.stack([s[key] for s in samples]) for key in samples[0]}

@@ -1,0 +1,291 @@
+"""Training of the SDM-UniPS networks on `matcap synth` data, single process or data-parallel.
+
+    python -m networks.train --data DATA/ --target normal --preset small --out runs/NAME [--resume] [--steps N]
+    torchrun --nproc_per_node=2 -m networks.train ...        # the same, DDP (gloo on CPU, nccl on GPU)
+
+Defaults follow the paper's recipe (AdamW, lr 1e-4, weight decay 0.05, linear warm-up, step decay x0.8; MSE on unit
+normals inside the mask; BRDF: MSE on base color, roughness, metallic); every field is overridable.
+
+Resumable bit-for-bit: the data of step s and the dropout noise of step s are pure functions of (seed, s, rank),
+and the checkpoint holds model, optimiser and schedule state at a step boundary.
+Files in ``--out``: ``checkpoint.pt`` (tensors and numbers only, loaded with ``weights_only=True``),
+``best.safetensors`` (best validation so far, with config and card), ``last.safetensors``, ``log.jsonl``
+(one JSON record per log/validation event) and ``train.log``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from networks.config import get_config
+from networks.data import SceneCache, draw_batch, list_scenes, load_scene
+from networks.preprocess import normalize_images
+from networks.trainconfig import TrainConfig, add_arguments, config_from_args
+
+
+# ------------------------------------------------------------------------------------------ helpers
+
+
+def lr_factor(step: int, tc: TrainConfig) -> float:
+    """Warm-up then step decay: the multiplier of ``lr`` at ``step``."""
+    warm = min(1.0, (step + 1) / max(tc.warmup_steps, 1))
+    return warm * tc.decay_factor ** (step // max(tc.decay_every, 1))
+
+
+def gather_pixels(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """x: (B, H, W, C) or (B, H, W); index: (B, m) flat -> (B, m, C)."""
+    b = x.shape[0]
+    flat = x.reshape(b, -1, x.shape[-1] if x.dim() == 4 else 1)
+    return torch.gather(flat, 1, index.unsqueeze(-1).expand(-1, -1, flat.shape[-1]))
+
+
+def compute_loss(pred: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], target: str):
+    """MSE on unit normals (and BRDF maps) at the sampled pixels, which all lie inside the loss mask."""
+    idx = batch["pixel_index"]
+    terms = {"normal": F.mse_loss(pred["normal"].float(), gather_pixels(batch["normal"], idx))}
+    if target == "brdf":
+        terms["base_color"] = F.mse_loss(pred["base_color"].float(), gather_pixels(batch["base_color"], idx))
+        terms["roughness"] = F.mse_loss(pred["roughness"].float(), gather_pixels(batch["roughness"], idx))
+        terms["metallic"] = F.mse_loss(pred["metallic"].float(), gather_pixels(batch["metallic"], idx))
+        total = terms["base_color"] + terms["roughness"] + terms["metallic"]
+    else:
+        total = terms["normal"]
+    return total, {k: float(v.detach()) for k, v in terms.items()}
+
+
+def to_torch(batch: dict[str, np.ndarray], device) -> dict[str, torch.Tensor]:
+    out = {k: torch.from_numpy(v).to(device) for k, v in batch.items()}
+    out["input_mask"] = out["input_mask"].unsqueeze(1)  # (B, 1, R, R)
+    out["images"] = normalize_images(out["images"], out["input_mask"])
+    return out
+
+
+@torch.no_grad()
+def validate(model, scenes: list[Path], target: str, device, max_scenes: int, seed: int = 0) -> dict:
+    """Mean angular error (degrees) per lighting group, and BRDF RMSEs, on the first ``max_scenes`` scenes.
+
+    Each scene is predicted with its 10 stored images and its ground-truth mask, every pixel.
+    """
+    from networks.inference import predict
+
+    was_training = model.training
+    model.eval()
+    groups: dict[str, list[float]] = {}
+    sq: dict[str, list[float]] = {"base_color": [], "roughness": [], "metallic": []}
+    for path in scenes[:max_scenes]:
+        scene = load_scene(path)
+        try:
+            group = json.loads((path / "spec.json").read_text()).get("lighting_group", "all")
+        except (OSError, json.JSONDecodeError):
+            group = "all"
+        mask = scene["mask"].astype(bool)
+        gt = scene["normal"].astype(np.float32)
+        valid = mask & (np.linalg.norm(gt, axis=2) > 0.5)
+        images = torch.from_numpy(scene["images"].astype(np.float32)).permute(0, 3, 1, 2).to(device)
+        m = torch.from_numpy(mask).to(device)
+        images = normalize_images(images, m.float().unsqueeze(0))
+        out = predict(model, images, m, seed=seed)
+        n = out["normal"][valid]
+        g = gt[valid] / np.linalg.norm(gt[valid], axis=1, keepdims=True)
+        err = np.degrees(np.arccos(np.clip((n * g).sum(1) / np.maximum(np.linalg.norm(n, axis=1), 1e-8), -1, 1)))
+        groups.setdefault(group, []).append(float(err.mean()))
+        if target == "brdf":
+            for key in sq:
+                diff = out[key][valid] - scene[key].astype(np.float32)[valid]
+                sq[key].append(float(np.mean(diff**2)))
+    if was_training:
+        model.train()
+    result = {f"mae_{g}": float(np.mean(v)) for g, v in sorted(groups.items())}
+    result["mae"] = float(np.mean([e for v in groups.values() for e in v])) if groups else float("nan")
+    if target == "brdf":
+        for key, v in sq.items():
+            result[f"rmse_{key}"] = float(math.sqrt(np.mean(v))) if v else float("nan")
+        result["rmse_mean"] = float(np.mean([result[f"rmse_{k}"] for k in sq]))
+    return result
+
+
+def _save_atomic(obj, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _plain(obj):
+    """Checkpoint-safe copy of a config dict (only containers, strings and numbers)."""
+    return json.loads(json.dumps(obj))
+
+
+# ------------------------------------------------------------------------------------------ train
+
+
+def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progress: bool = True) -> dict:
+    """Run (or continue) training. Returns the final record (step, loss, last validation)."""
+    from networks.checkpoint import load_model, save_weights
+    from networks.model import SDMUniPS
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    ddp = world > 1
+    device = torch.device(tc.device)
+    if ddp:
+        import torch.distributed as dist
+
+        backend = "nccl" if device.type == "cuda" else "gloo"
+        if device.type == "cuda":
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+            torch.cuda.set_device(device)
+        dist.init_process_group(backend=backend)
+    if tc.threads:
+        torch.set_num_threads(tc.threads)
+    out = Path(tc.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scenes = list_scenes(tc.data)
+    val_scenes = list_scenes(tc.val_data) if tc.val_data else []
+    cache = SceneCache(scenes)
+
+    torch.manual_seed(tc.seed)
+    config = get_config(tc.preset, tc.target)
+    config.extra["native_resolution"] = tc.sample.resolution
+    model = SDMUniPS(config).to(device)
+    if init:
+        src, _, _ = load_model(init, device="cpu")
+        missing = model.load_state_dict(src.state_dict(), strict=False)
+        if rank == 0:
+            print(f"initialised from {init} (missing: {len(missing.missing_keys)} keys)", file=sys.stderr)
+    opt = torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, tc))
+    start, best, wall_before = 0, float("inf"), 0.0
+    ckpt_path = out / "checkpoint.pt"
+    if resume:
+        if not ckpt_path.exists():
+            raise ValueError(f"--resume: {ckpt_path} does not exist")
+        ckpt = torch.load(ckpt_path, map_location=device, weights_only=True)
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        sched.load_state_dict(ckpt["scheduler"])
+        start, best, wall_before = int(ckpt["step"]), float(ckpt["best"]), float(ckpt["wall_s"])
+    net = model
+    if ddp:
+        from torch.nn.parallel import DistributedDataParallel
+
+        net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+
+    log = open(out / "log.jsonl", "a") if rank == 0 else None
+    text_log = open(out / "train.log", "a") if rank == 0 else None
+
+    def record(rec: dict) -> None:
+        if log is not None:
+            log.write(json.dumps(rec) + "\n")
+            log.flush()
+            text_log.write(" ".join(f"{k}={v:.5g}" if isinstance(v, float) else f"{k}={v}" for k, v in rec.items()) + "\n")
+            text_log.flush()
+
+    def card(step: int, wall: float, val: dict | None) -> dict:
+        return {
+            "preset": tc.preset, "target": tc.target, "steps": step, "wall_time_s": round(wall, 1),
+            "data": str(tc.data), "train_scenes": len(scenes), "val_data": str(tc.val_data),
+            "validation": val or {}, "train_config": _plain(dataclasses.asdict(tc)), "world_size": world,
+        }
+
+    def save_checkpoint(step: int, wall: float) -> None:
+        _save_atomic(
+            {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+             "step": step, "best": best, "wall_s": wall, "train_config": _plain(dataclasses.asdict(tc))},
+            ckpt_path,
+        )
+
+    bar = None
+    if progress and rank == 0:
+        from tqdm import tqdm
+
+        bar = tqdm(total=tc.steps, initial=start, desc=f"train {tc.target}/{tc.preset}", unit="step", dynamic_ncols=True)
+    t_start = time.perf_counter()
+    last_ckpt = last_val = t_start
+    autocast = torch.autocast(device.type, dtype=torch.bfloat16) if tc.bf16 else None
+    net.train()
+    last_val_result: dict | None = None
+    running = []
+    step = start
+    for step in range(start, tc.steps):
+        torch.manual_seed(tc.seed * 1_000_003 + step * 7919 + rank)  # dropout noise of this step
+        batch = to_torch(draw_batch(cache, tc.sample, tc.batch, tc.seed, step, rank), device)
+        if autocast is not None:
+            with autocast:
+                pred = net(batch["images"], batch["input_mask"], batch["pixel_index"])
+        else:
+            pred = net(batch["images"], batch["input_mask"], batch["pixel_index"])
+        loss, terms = compute_loss(pred, batch, tc.target)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if tc.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
+        opt.step()
+        sched.step()
+        running.append(float(loss.detach()))
+        now = time.perf_counter()
+        wall = wall_before + now - t_start
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{running[-1]:.4f}")
+        if rank == 0 and ((step + 1) % tc.log_every == 0 or step + 1 == tc.steps):
+            record({"event": "train", "step": step + 1, "loss": float(np.mean(running)), **terms,
+                    "lr": sched.get_last_lr()[0], "wall_s": round(wall, 1)})
+            running = []
+        done = step + 1 == tc.steps
+        if rank == 0 and val_scenes and (done or now - last_val >= tc.val_every_s):
+            last_val_result = validate(model, val_scenes, tc.target, device, tc.val_scenes, tc.seed)
+            record({"event": "val", "step": step + 1, "wall_s": round(wall, 1), **last_val_result})
+            score = last_val_result["rmse_mean"] if tc.target == "brdf" else last_val_result["mae"]
+            if score < best:
+                best = score
+                save_weights(out / "best.safetensors", model, config, card(step + 1, wall, last_val_result))
+            last_val = time.perf_counter()
+        if rank == 0 and (done or now - last_ckpt >= tc.checkpoint_every_s):
+            save_checkpoint(step + 1, wall)
+            save_weights(out / "last.safetensors", model, config, card(step + 1, wall, last_val_result))
+            last_ckpt = time.perf_counter()
+    if bar is not None:
+        bar.close()
+    final = {"step": tc.steps, "best": best, "validation": last_val_result}
+    if ddp:
+        import torch.distributed as dist
+
+        dist.barrier()
+    if tc.save_all_ranks:
+        save_weights(out / f"final_rank{rank}.safetensors", model, config, card(step + 1, 0.0, None))
+    if ddp:
+        import torch.distributed as dist
+
+        dist.destroy_process_group()
+    if log is not None:
+        log.close()
+        text_log.close()
+    return final
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m networks.train", description=__doc__.split("\n\n")[0])
+    add_arguments(p)
+    args = p.parse_args(argv)
+    try:
+        result = train(config_from_args(args), resume=args.resume, init=args.init, progress=not args.quiet)
+    except ValueError as exc:
+        print(f"networks.train: error: {exc}", file=sys.stderr)
+        return 2
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,91 @@
+"""Training run settings and their command-line flags (no torch import: `matcap train --help` stays fast)."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from dataclasses import dataclass, field
+
+from networks.data import SampleSpec
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a training run (stored in the checkpoint and the model card)."""
+
+    data: str = ""
+    """Training dataset folder (output of `matcap synth --split train`)."""
+    target: str = "normal"
+    """"normal" or "brdf"."""
+    preset: str = "small"
+    """Network preset: paper, small or tiny."""
+    out: str = "runs/default"
+    """Run folder (checkpoints, logs, best weights)."""
+    steps: int = 20000
+    """Total optimiser steps."""
+    batch: int = 4
+    """Samples per step per process."""
+    lr: float = 1e-4
+    """Peak learning rate (AdamW)."""
+    weight_decay: float = 0.05
+    """AdamW weight decay."""
+    warmup_steps: int = 200
+    """Linear warm-up from 0 to lr."""
+    decay_every: int = 5000
+    """Multiply the learning rate by ``decay_factor`` every this many steps."""
+    decay_factor: float = 0.8
+    """Step-decay factor."""
+    grad_clip: float = 1.0
+    """Max global gradient norm (0 = off)."""
+    sample: SampleSpec = field(default_factory=SampleSpec)
+    """How samples are drawn (resolution, K range, pixel samples, augmentation)."""
+    val_data: str = ""
+    """Validation dataset (the fixed `--split test` set); empty = no validation."""
+    val_scenes: int = 24
+    """Validate on at most this many scenes (the first ones, always the same)."""
+    val_every_s: float = 900.0
+    """Validate every this many seconds of training (and at the end)."""
+    checkpoint_every_s: float = 180.0
+    """Write checkpoint.pt every this many seconds (and at the end)."""
+    log_every: int = 10
+    """Write a log record every this many steps."""
+    seed: int = 0
+    """Seed of initial weights, data order and dropout."""
+    device: str = "cpu"
+    """torch device (cpu, cuda, cuda:N)."""
+    bf16: bool = False
+    """bfloat16 autocast for forward/backward."""
+    threads: int = 0
+    """torch intra-op threads (0 = torch default)."""
+    save_all_ranks: bool = False
+    """Every rank writes final_rank<r>.safetensors (used by the DDP test)."""
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """CLI flags for every TrainConfig field (shared by `matcap train` and `python -m networks.train`)."""
+    d = TrainConfig()
+    p.add_argument("--data", required=True, help="training dataset folder (matcap synth --split train)")
+    p.add_argument("--target", choices=("normal", "brdf"), default=d.target)
+    p.add_argument("--preset", choices=("paper", "small", "tiny"), default=d.preset)
+    p.add_argument("--out", default=d.out, help="run folder")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--init", help="start from these weights (.safetensors) instead of random init")
+    for name in ("steps", "batch", "warmup_steps", "decay_every", "log_every", "seed", "threads", "val_scenes"):
+        p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(d, name))
+    for name in ("lr", "weight_decay", "decay_factor", "grad_clip", "val_every_s", "checkpoint_every_s"):
+        p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(d, name))
+    s = SampleSpec()
+    for name in ("resolution", "min_images", "max_images", "pixel_samples"):
+        p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(s, name))
+    for name in ("fresh_combination_prob", "drop_mask_prob", "min_crop"):
+        p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(s, name))
+    p.add_argument("--val-data", default="", help="validation dataset (synthetic test split)")
+    p.add_argument("--device", default=d.device)
+    p.add_argument("--bf16", action="store_true")
+    p.add_argument("--save-all-ranks", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    sample = SampleSpec(**{f.name: getattr(args, f.name) for f in dataclasses.fields(SampleSpec)})
+    fields = {f.name for f in dataclasses.fields(TrainConfig)} - {"sample"}
+    return TrainConfig(sample=sample, **{k: getattr(args, k) for k in fields})
