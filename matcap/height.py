@@ -84,8 +84,10 @@ def poisson_masked(gx: np.ndarray, gr: np.ndarray, mask: np.ndarray, max_slope: 
     ):
         both = mask[a_sl] & mask[b_sl]
         ga, gb = g[a_sl][both], g[b_sl][both]
+        # jump of the whole gradient vector between the two pixels (a discontinuity may run along the edge)
+        dg = np.hypot(gx[a_sl][both] - gx[b_sl][both], gr[a_sl][both] - gr[b_sl][both])
         wgt = np.ones_like(ga)
-        wgt[(np.abs(gb - ga) > jump) | (np.maximum(np.abs(ga), np.abs(gb)) >= max_slope * 0.999)] = 1e-4
+        wgt[(dg > jump) | (np.maximum(np.abs(ga), np.abs(gb)) >= max_slope * 0.999)] = 1e-4
         rows_a.append(index[a_sl][both])
         rows_b.append(index[b_sl][both])
         rhs.append(0.5 * (ga + gb))

@@ -20,7 +20,7 @@ from typing import Any, Iterable
 import torch
 
 from networks.config import SDMUniPSConfig, get_config
-from networks.model import SDMUniPS
+from networks.model import SDMUniPS, build_model
 
 CONFIG_KEY = "matcap.config"
 CARD_KEY = "matcap.card"
@@ -84,8 +84,8 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"
 
     config, card = read_metadata(path)
     state = load_file(str(path), device="cpu")
-    model = SDMUniPS(config)
-    expected = model.state_dict()
+    with torch.device("meta"):
+        expected = SDMUniPS(config).state_dict()
     missing = [k for k in expected if k not in state]
     unexpected = [k for k in state if k not in expected]
     if missing or unexpected:
@@ -94,7 +94,7 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"
     for k, v in expected.items():
         if tuple(state[k].shape) != tuple(v.shape):
             raise ValueError(f"{path}: {k} has shape {tuple(state[k].shape)}, config expects {tuple(v.shape)}")
-    model.load_state_dict(state, strict=True)
+    model = build_model(config, state)
     return model.to(device).eval(), config, card
 
 

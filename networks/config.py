@@ -8,14 +8,16 @@ Presets (``get_config(name, target)``):
     shapes equal the published checkpoints' (without ``module.``). 62,753,711 parameters (normal target).
 
 ``small``
-    A CPU-trainable network. Measured with ``torch.utils.flop_counter.FlopCounterMode`` on one object, 512x512,
-    K=16 images, every pixel predicted in sample sets of 10,000 (``benchmarks/bench_networks.py --flops``):
-    paper 49.2 TFLOP, small 4.7 TFLOP, i.e. **10.5x fewer FLOPs per pixel** (encoder 12x, per-pixel decoder 14x,
-    regressor attention over the sample set 3x). Measured wall time on 2 shared cores (fp32, 512x512, K=16, full disc
-    mask): see ``benchmarks/bench_networks.py``; the ratio of wall times is about 9x.
+    A CPU-trainable network. FLOPs counted with ``torch.utils.flop_counter.FlopCounterMode`` (meta tensors;
+    ``python benchmarks/bench_networks.py --flops``) for one object at 512x512, K=16 images, every pixel predicted
+    in sample sets of 10,000: paper 57.8 TFLOP, small 5.0 TFLOP, i.e. **11.5x fewer FLOPs per pixel** (encoder
+    10.2x, per-pixel decoder 13.7x, regressor attention over the sample set 6.7x). In a training-like setting
+    (256x256, K=10, 2048 supervised pixels) the forward pass is ~11x cheaper as well (0.66 vs 0.058 TFLOP).
+    Measured wall time: see ``benchmarks/bench_networks.py`` (numbers in the lead's report / README).
     Definition: backbone depths (2, 2, 6, 2), dims (48, 96, 192, 384); light-axis attention blocks (0, 1, 1, 2);
-    fusion 128 channels; glc_upsample 96 wide / feed-forward 192; glc_aggregation 2 blocks 128 wide / feed-forward
-    256, PMA feed-forward 256; regressor 2 blocks 128 wide / feed-forward 256 (heads 128 -> 64 -> k). 2.2 M parameters.
+    fusion 64 channels; glc_upsample 2 blocks 96 wide / feed-forward 192; glc_aggregation 2 blocks 128 wide /
+    feed-forward 256, PMA feed-forward 256; regressor 1 block 128 wide / feed-forward 256 (heads 128 -> 64 -> k).
+    7.87 M parameters (normal target; 62.75 M for paper).
 
 ``tiny``
     For tests: a forward pass on 2 images at 64x64 runs in a few tens of milliseconds.
@@ -221,7 +223,7 @@ def get_config(name: str = "paper", target: str = "normal") -> SDMUniPSConfig:
             backbone_depths=(2, 2, 6, 2),
             backbone_dims=(48, 96, 192, 384),
             light_attention_blocks=(0, 1, 1, 2),
-            fusion_channels=128,
+            fusion_channels=64,
             glc_upsample_dim=96,
             glc_upsample_blocks=2,
             glc_upsample_ff=192,
@@ -229,7 +231,7 @@ def get_config(name: str = "paper", target: str = "normal") -> SDMUniPSConfig:
             glc_aggregation_blocks=2,
             glc_aggregation_ff=256,
             pma_ff=256,
-            regressor_blocks=2,
+            regressor_blocks=1,
             regressor_ff=256,
         )
     if name == "tiny":

@@ -17,6 +17,7 @@ Submodule names are chosen so that the ``paper`` preset's ``state_dict`` keys eq
 """
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
@@ -377,6 +378,13 @@ class Regressor(nn.Module):
         return out
 
 
+def _no_autocast(device: torch.device):
+    """Disable autocast for a region (no-op on devices autocast does not know, e.g. meta)."""
+    if device.type in ("cpu", "cuda", "xpu", "mps"):
+        return torch.autocast(device_type=device.type, enabled=False)
+    return contextlib.nullcontext()
+
+
 # ---------------------------------------------------------------------------------------------------- smoothing
 def gaussian_kernel_1d(size: int, sigma: float, dtype=torch.float64) -> torch.Tensor:
     """Normalised 1-D Gaussian of ``size`` taps centred at (size-1)/2. The published 2-D kernel (normalised product
@@ -505,10 +513,11 @@ class SDMUniPS(nn.Module):
         else:
             raw = images.reshape(b, n, 3, d * d)
         idx = pixel_index.long()
-        if bool((idx < 0).any()) or bool((idx >= d * d).any()):
+        if idx.device.type != "meta" and (bool((idx < 0).any()) or bool((idx >= d * d).any())):
             raise ValueError(f"pixel_index values must lie in [0, {d * d}) for a {d}x{d} decoder grid")
         m = idx.shape[1]
-        feats = features.reshape(b * n, features.shape[2], features.shape[3], features.shape[4])
+        # Sampling positions and features in float32 even under autocast: bf16 coordinates would be off by pixels.
+        feats = features.reshape(b * n, features.shape[2], features.shape[3], features.shape[4]).float()
         chunk = max(1, cfg.decoder_chunk)
         pooled = []
         for start in range(0, m, chunk):
@@ -519,8 +528,9 @@ class SDMUniPS(nn.Module):
             rows = torch.div(sel, d, rounding_mode="floor")
             cols = sel - rows * d
             grid = torch.stack([2.0 * cols / d - 1.0, 2.0 * rows / d - 1.0], dim=-1)  # (B, mc, 2): x=col, y=row
-            grid = grid.to(feats.dtype)[:, None, None].expand(b, n, 1, mc, 2).reshape(b * n, 1, mc, 2)
-            f = F.grid_sample(feats, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+            grid = grid.float()[:, None, None].expand(b, n, 1, mc, 2).reshape(b * n, 1, mc, 2)
+            with _no_autocast(feats.device):
+                f = F.grid_sample(feats, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
             f = f.reshape(b, n, -1, mc).permute(0, 3, 1, 2).reshape(b * mc, n, -1)     # (B*mc, N, C)
             x = self.glc_upsample(torch.cat([o, f.to(o.dtype)], dim=-1))              # (B*mc, N, Du)
             x = self.glc_aggregation(torch.cat([o.to(x.dtype), x], dim=-1))           # (B*mc, Da)
@@ -534,6 +544,12 @@ class SDMUniPS(nn.Module):
         return self.decode(images, mask, self.encode(images, mask), pixel_index)
 
 
-def build_model(config: SDMUniPSConfig) -> SDMUniPS:
-    """Convenience constructor."""
-    return SDMUniPS(config)
+def build_model(config: SDMUniPSConfig, state_dict: dict[str, torch.Tensor] | None = None) -> SDMUniPS:
+    """A model for ``config``; with ``state_dict`` it is built on the meta device (no wasted random init) and the
+    given tensors are loaded strictly (``assign=True``: the model then uses those tensors)."""
+    if state_dict is None:
+        return SDMUniPS(config)
+    with torch.device("meta"):
+        model = SDMUniPS(config)
+    model.load_state_dict(state_dict, strict=True, assign=True)
+    return model

@@ -155,6 +155,12 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
 
     torch.manual_seed(tc.seed)
     config = get_config(tc.preset, tc.target)
+    overrides = {}
+    if tc.canonical_resolution:
+        overrides["canonical_resolution"] = tc.canonical_resolution
+    if tc.dropout >= 0:
+        overrides["dropout"] = tc.dropout
+    config = dataclasses.replace(config, **overrides)
     config.extra["native_resolution"] = tc.sample.resolution
     model = SDMUniPS(config).to(device)
     if init:

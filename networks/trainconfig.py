@@ -36,6 +36,10 @@ class TrainConfig:
     """Step-decay factor."""
     grad_clip: float = 1.0
     """Max global gradient norm (0 = off)."""
+    canonical_resolution: int = 0
+    """Override the preset's encoder canonical resolution (0 = keep the preset's). CPU runs use 128."""
+    dropout: float = -1.0
+    """Override the preset's attention dropout (< 0 = keep the preset's 0.1)."""
     sample: SampleSpec = field(default_factory=SampleSpec)
     """How samples are drawn (resolution, K range, pixel samples, augmentation)."""
     val_data: str = ""
@@ -69,6 +73,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=d.out, help="run folder")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--init", help="start from these weights (.safetensors) instead of random init")
+    p.add_argument("--canonical-resolution", type=int, default=d.canonical_resolution,
+                   help="override the preset's canonical resolution (0 = preset's)")
+    p.add_argument("--dropout", type=float, default=d.dropout, help="override the preset's dropout (<0 = preset's)")
     for name in ("steps", "batch", "warmup_steps", "decay_every", "log_every", "seed", "threads", "val_scenes"):
         p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(d, name))
     for name in ("lr", "weight_decay", "decay_factor", "grad_clip", "val_every_s", "checkpoint_every_s"):

@@ -36,11 +36,14 @@ def plane_shape(width: int, height: int, bsdf: dict) -> dict:
     return {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([hx, hy, 1.0]), "bsdf": bsdf}
 
 
-def ortho_sensor(width: int, height: int, spp: int, *, seed: int = 0, rfilter: str = "box") -> dict:
+def ortho_sensor(
+    width: int, height: int, spp: int, *, seed: int = 0, rfilter: str = "box", sampler: str = "multijitter"
+) -> dict:
     """Orthographic camera on +z looking down -z, up = +y, framing the plane of :func:`plane_shape` exactly.
 
     Mitsuba's orthographic view region is x in [-1, 1] and y in [-H/W, H/W] before ``to_world``, which is
-    the plane's extent, so no extra scaling is needed.
+    the plane's extent, so no extra scaling is needed. ``multijitter`` (stratified, jittered) sampling gives
+    about half the noise of ``independent`` at the same cost (measured: docs/relight.md).
     """
     import mitsuba as mi
 
@@ -51,7 +54,7 @@ def ortho_sensor(width: int, height: int, spp: int, *, seed: int = 0, rfilter: s
         ),
         "near_clip": 0.01,
         "far_clip": 10.0 * CAMERA_DISTANCE,
-        "sampler": {"type": "independent", "sample_count": int(spp), "seed": int(seed)},
+        "sampler": {"type": sampler, "sample_count": int(spp), "seed": int(seed)},
         "film": {
             "type": "hdrfilm",
             "width": int(width),

@@ -10,18 +10,20 @@ Masked-out pixels: the plane is rendered with neutral values there (normal +z, d
 background is black (and transparent in PNGs written by :mod:`matcap.relight`).
 
 Integrator: ``direct`` with multiple importance sampling. A plane cannot see itself, so one-bounce direct
-lighting is the exact answer (same as ``path``), at a lower cost.
+lighting is the exact answer (same as ``path``), at a lower cost. Environment texels that can only light the
+back of the plane are zeroed before rendering (:func:`cull_back_hemisphere`; exact for the plane), which cuts
+the noise about 4x for typical maps whose light is mostly behind the object.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from renderers.emitters import emitter_dict
+from renderers.emitters import emitter_dict, sanitize_envmap
 from renderers.plane import ortho_sensor, plane_shape, plane_to_uv
 from scenes.lights import EnvironmentLight, Light
 from scenes.materialmaps import MaterialMaps
 
-DEFAULT_SPP = 32
+DEFAULT_SPP = 16  # 1024x1024 under an env map in ~3 s on 2 cores; see docs/relight.md for the noise
 DEFAULT_SPECULAR = 0.5  # Principled "specular" 0.5 = F0 of 4 % (IOR 1.5), the glTF / Disney default
 
 
@@ -101,6 +103,7 @@ def build_scene(
     *,
     seed: int = 0,
     specular: float = DEFAULT_SPECULAR,
+    cull_back: bool = True,
 ) -> dict:
     """The Mitsuba scene dict that shows ``maps`` on the framing plane under ``lights``.
 
@@ -129,6 +132,9 @@ def build_scene(
             if not envmaps or light.source not in envmaps:
                 raise ValueError(f"no pixels for environment map {light.source!r}")
             pixels = envmaps[light.source]
+            if cull_back:
+                pixels = cull_back_hemisphere(sanitize_envmap(pixels, light.source or "environment map"),
+                                              light.rotation_deg)
         scene[f"light_{i}"] = emitter_dict(light, pixels)
     return scene
 
@@ -166,3 +172,29 @@ def render(
     img = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)
     img *= mask_coverage(maps.mask, width, height)[..., None]
     return np.ascontiguousarray(img, dtype=np.float32)
+
+
+def _envmap_directions(height: int, width: int, rotation_deg: float) -> np.ndarray:
+    """World directions (H, W, 3) of the texel centres of an equirectangular map under Mitsuba's ``envmap``
+    convention (u = atan2(x, -z) / 2pi, v = acos(y) / pi), turned by ``rotation_deg`` about +y."""
+    u = (np.arange(width, dtype=np.float64) + 0.5) / width
+    v = (np.arange(height, dtype=np.float64) + 0.5) / height
+    phi, theta = np.meshgrid(2.0 * np.pi * u, np.pi * v)
+    local = np.stack([np.sin(phi) * np.sin(theta), np.cos(theta), -np.cos(phi) * np.sin(theta)], axis=-1)
+    a = np.radians(rotation_deg)
+    rot = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    return local @ rot.T
+
+
+def cull_back_hemisphere(pixels: np.ndarray, rotation_deg: float = 0.0) -> np.ndarray:
+    """Zero the texels that can only light the back of the plane (world z < 0), with a 2-texel margin.
+
+    Exact for the flat plane (Mitsuba's ``normalmap`` only lets light through that is in front of both the
+    geometric and the shading frame), and it stops importance sampling from wasting samples on the half of
+    the sphere the surface cannot see.
+    """
+    h, w = pixels.shape[:2]
+    d = _envmap_directions(h, w, rotation_deg)
+    margin = np.sin(2.0 * np.pi / h)  # two texels (pi / H rad each) past the horizon: bilinear support
+    keep = d[..., 2] > -margin
+    return np.where(keep[..., None], pixels, 0.0).astype(np.float32)

@@ -123,7 +123,9 @@ def make_superquadric(e1: float, e2: float, res: int = 64) -> Geometry:
         return np.stack([spow(np.cos(th), e1) * spow(np.cos(ph), e2), spow(np.sin(th), e1),
                          spow(np.cos(th), e1) * spow(np.sin(ph), e2)], -1) * np.array([1, -1, 1])
 
-    return _parametric(fn, res * 2, res)
+    g = _parametric(fn, res * 2, res)
+    g.vertices /= np.linalg.norm(g.vertices, axis=1).max()
+    return g
 
 
 def make_bumpy_sphere(amplitude: float, seed: int, res: int = 96) -> Geometry:

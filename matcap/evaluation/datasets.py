@@ -41,9 +41,10 @@ Three layouts are recognised (:func:`discover` decides from the files present):
 ``synthetic``  -- our rendered split: ``DATA/manifest.json`` and ``DATA/scene_XXXXXX/`` with ``000.png`` ...
     (linear 16-bit RGB), ``mask.png`` (0/255), ``normal.exr`` (float32, our convention, zeros outside the mask),
     ``spec.json`` (``"lighting_group"``: ``"directional"`` / ``"environment"`` / ``"both"``; optional ``"split"``)
-    and ``lights.json``. Lights count as calibrated only when every image is lit by exactly one directional
-    light (then its direction and irradiance are used); otherwise ``light_dirs`` is None and the least-squares
-    baselines report "n/a".
+    and ``lights.json`` (basis lights + per-image weights and exposure). Lights count as calibrated only when every
+    image is lit by exactly one directional basis light (then its direction, and irradiance x weight x exposure
+    as intensity, are used); otherwise ``light_dirs`` is None and the least-squares baselines report "n/a".
+    ``manifest.json`` names the split the folder holds and the scenes' lighting groups.
 """
 from __future__ import annotations
 
@@ -361,11 +362,31 @@ def _single_directional(entry: Any) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def synthetic_lights(data: Any, n_images: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """Calibrated (directions, intensities) from a scene's ``lights.json``, or None if not all single-directional.
+    """Calibrated (directions, intensities) from a scene's ``lights.json``, or None if any image is not lit by
+    exactly one directional light.
 
-    Accepts a list with one entry per image, or a dict holding such a list under ``"images"``, ``"lights"`` or
-    ``"per_image"``; an entry is a light dict, a one-element list of light dicts, or ``{"lights": [...]}``.
+    The generator's format (``matcap synth``): ``{"basis": [light dicts], "images": [{"weights": [one per basis
+    light], "exposure": e}, ...]}``; an image is directional when exactly one weight is non-zero and that basis
+    light is ``"directional"``; its intensity is ``weight * exposure * irradiance``. Also accepted: a list (or
+    ``{"images"|"per_image"|"lights": [...]}``) with one light dict (or one-element list) per image.
     """
+    if isinstance(data, dict) and isinstance(data.get("basis"), list) and isinstance(data.get("images"), list):
+        basis, per_image = data["basis"], data["images"]
+        if len(per_image) != n_images:
+            return None
+        dirs, ints = [], []
+        for entry in per_image:
+            w = np.asarray(entry.get("weights", []) if isinstance(entry, dict) else [], dtype=np.float64)
+            on = np.flatnonzero(w > 0)
+            if len(w) != len(basis) or len(on) != 1:
+                return None
+            one = _single_directional(basis[on[0]])
+            if one is None:
+                return None
+            scale = w[on[0]] * float(entry.get("exposure", 1.0))
+            dirs.append(one[0])
+            ints.append(one[1] * scale)
+        return np.stack(dirs), np.stack(ints)
     per_image = data
     if isinstance(data, dict):
         for key in ("images", "per_image", "lights"):
@@ -396,7 +417,7 @@ def load_synthetic_scene(folder: str | os.PathLike, group: str | None = None) ->
     normal = _unit_normals(normal, mask)
     spec = _read_json(folder / "spec.json") if (folder / "spec.json").is_file() else {}
     if group is None:
-        group = str(spec.get("lighting_group", "unknown")) if isinstance(spec, dict) else "unknown"
+        group = str((spec.get("lighting_group") if isinstance(spec, dict) else None) or "unknown")
     dirs = ints = None
     if (folder / "lights.json").is_file():
         lights = synthetic_lights(_read_json(folder / "lights.json"), len(images))
@@ -408,20 +429,27 @@ def load_synthetic_scene(folder: str | os.PathLike, group: str | None = None) ->
 
 
 def _manifest_scenes(root: Path, split: str | None) -> list[tuple[str, str | None]] | None:
-    """(folder name, group or None) from ``manifest.json`` if it lists scenes, else None."""
+    """(folder name, group or None) from ``manifest.json`` if it lists scenes, else None.
+
+    The generator writes ``{"split": "test", "scenes": ["scene_000000", ...], "lighting_groups": {name: group}}``
+    (one split per folder); lists of ``{"dir"|"name"|..., "split", "lighting_group"}`` dicts are accepted too.
+    """
     path = root / "manifest.json"
     if not path.is_file():
         return None
     data = _read_json(path)
     entries = None
+    groups: dict[str, Any] = {}
     if isinstance(data, dict):
-        if split and isinstance(data.get("splits"), dict) and isinstance(data["splits"].get(split), list):
-            entries = [e if isinstance(e, dict) else {"dir": e, "split": split} for e in data["splits"][split]]
-        else:
-            for key in ("scenes", "items", "entries"):
-                if isinstance(data.get(key), list):
-                    entries = data[key]
-                    break
+        if split and isinstance(data.get("split"), str) and data["split"] != split:
+            raise MatcapError(f"{path}: this folder holds the {data['split']!r} split, not {split!r} "
+                              f"(pass --split {data['split']} to evaluate it)")
+        if isinstance(data.get("lighting_groups"), dict):
+            groups = data["lighting_groups"]
+        for key in ("scenes", "items", "entries"):
+            if isinstance(data.get(key), list):
+                entries = data[key]
+                break
     elif isinstance(data, list):
         entries = data
     if entries is None:
@@ -429,18 +457,19 @@ def _manifest_scenes(root: Path, split: str | None) -> list[tuple[str, str | Non
     out = []
     for e in entries:
         if isinstance(e, str):
-            out.append((Path(e).name, None))
+            name, group, esplit = e, None, None
+        elif isinstance(e, dict):
+            name = next((str(e[k]) for k in ("dir", "path", "folder", "name", "id") if k in e), None)
+            group, esplit = e.get("lighting_group"), e.get("split")
+            if name is None:
+                continue
+        else:
             continue
-        if not isinstance(e, dict):
-            continue
-        if split and "split" in e and e["split"] != split:
-            continue
-        name = next((str(e[k]) for k in ("dir", "path", "folder", "name", "id") if k in e), None)
-        if name is None:
+        if split and esplit is not None and esplit != split:
             continue
         if not (root / name).is_dir() and (root / Path(name).name).is_dir():
             name = Path(name).name
-        group = e.get("lighting_group")
+        group = group if group is not None else groups.get(name)
         out.append((name, str(group) if group is not None else None))
     return out
 

@@ -57,7 +57,7 @@ def render_lambertian(normal, mask, lights, intensities=None, albedo=(0.8, 0.6, 
     a = np.asarray(albedo, np.float64)
     n = np.asarray(normal, np.float64)
     out = []
-    for l, ek in zip(lights, e):
+    for l, ek in zip(lights, e, strict=True):
         shade = np.maximum(n @ l, 0.0)
         img = shade[:, :, None] * a[None, None, :]
         if specular:
@@ -77,7 +77,7 @@ def write_diligent_object(folder: str | os.PathLike, images, mask, normal, light
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     names = [f"{i + 1:03d}.png" for i in range(len(images))]
-    for name, img in zip(names, images):
+    for name, img in zip(names, images, strict=True):
         imageio.write_png(folder / name, img, bits=16)
     (folder / "filenames.txt").write_text("\n".join(names) + "\n")
     np.savetxt(folder / "light_directions.txt", np.asarray(lights, np.float64), fmt="%.8f")

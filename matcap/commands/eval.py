@@ -1,0 +1,101 @@
+"""`matcap eval DATASET_DIR`: normal-estimation benchmark (DiLiGenT layout, UW captures, our synthetic split)."""
+from __future__ import annotations
+
+import argparse
+import shlex
+
+METHOD_NAMES = ("least-squares", "least-squares-robust", "sdm-unips")  # keep in step with runner.METHODS
+
+
+def _positive(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
+    return v
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "eval",
+        help="benchmark normal estimation: mean angular error per object and lighting group, with baselines",
+        description="Evaluate a normal-estimation method on DiLiGenT-layout objects, UW-style captures or our "
+                    "synthetic test split: mean/median angular error, share under 10/20/30 degrees, seconds "
+                    "per object, as a Markdown table (stdout) and optional JSON; see docs/eval.md.",
+    )
+    p.add_argument("dataset", help="an object folder, or a folder of object folders / synthetic scenes")
+    p.add_argument("--method", default="least-squares", choices=METHOD_NAMES,
+                   help="method to evaluate (default least-squares)")
+    p.add_argument("--reference", choices=METHOD_NAMES,
+                   help="score against this method on all images instead of ground-truth normals "
+                        "(for data without ground truth, e.g. --reference least-squares)")
+    p.add_argument("--objects", help="comma-separated object names to evaluate (default: all)")
+    p.add_argument("--max-images", type=_positive, metavar="K",
+                   help="K images drawn at random per trial (default: all images, one trial)")
+    p.add_argument("--trials", type=_positive, default=10, help="trials for --max-images (default 10)")
+    p.add_argument("--seed", type=int, default=0, help="base seed of the image subsets (default 0)")
+    p.add_argument("--split", default="test", help="synthetic split to evaluate (default test)")
+    p.add_argument("--weights", action="append", metavar="FILE_OR_DIR",
+                   help="network weights for sdm-unips (repeatable; default: the bundled model)")
+    p.add_argument("--device", default="cpu", help="torch device for sdm-unips (default cpu)")
+    p.add_argument("--out", metavar="DIR",
+                   help="write results.md, results.json and error_maps/<object>.png (0-90 deg) here")
+    p.add_argument("--json", metavar="FILE", help="also write the JSON report to FILE (atomically)")
+    p.add_argument("--markdown", metavar="FILE", help="also write the Markdown table to FILE (atomically)")
+    p.add_argument("--quiet", action="store_true", help="no per-object progress lines on stderr")
+    p.set_defaults(func=run)
+
+
+def command_line(args) -> str:
+    """A canonical `matcap eval ...` line reproducing ``args`` (written into the tables)."""
+    parts = ["matcap", "eval", args.dataset, "--method", args.method]
+    if args.reference:
+        parts += ["--reference", args.reference]
+    if args.objects:
+        parts += ["--objects", args.objects]
+    if args.max_images:
+        parts += ["--max-images", str(args.max_images), "--trials", str(args.trials), "--seed", str(args.seed)]
+    if args.split != "test":
+        parts += ["--split", args.split]
+    for w in args.weights or []:
+        parts += ["--weights", w]
+    return " ".join(shlex.quote(p) for p in parts)
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from matcap.errors import MatcapError
+    from matcap.evaluation import runner
+    from matcap.imageio import write_text_atomic
+
+    objects = [o.strip() for o in args.objects.split(",") if o.strip()] if args.objects else None
+    if args.objects is not None and not objects:
+        raise MatcapError("--objects is empty")
+    if args.device.startswith("cuda") and "sdm-unips" in (args.method, args.reference):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise MatcapError(f"--device {args.device}: CUDA is not available in this torch build")
+    out = Path(args.out) if args.out else None
+    if out is not None and out.exists() and not out.is_dir():
+        raise MatcapError(f"{out} exists and is not a folder")
+    report = runner.evaluate(
+        args.dataset, args.method, args.reference, objects=objects, max_images=args.max_images,
+        trials=args.trials, seed=args.seed, weights=args.weights, device=args.device,
+        error_map_dir=(out / "error_maps") if out else None, split=args.split, command=command_line(args),
+        log=None if args.quiet else runner.stderr_log,
+    )
+    md = runner.to_markdown(report)
+    js = runner.to_json(report)
+    if out is not None:
+        write_text_atomic(out / "results.md", md)
+        write_text_atomic(out / "results.json", js)
+    if args.json:
+        write_text_atomic(args.json, js)
+    if args.markdown:
+        write_text_atomic(args.markdown, md)
+    print(md, end="")
+    return 0

@@ -1,0 +1,86 @@
+"""Installed models (`networks/weights/`): listing, and installing a trained run's weights with a model card."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from matcap.errors import MatcapError
+
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "networks" / "weights"
+
+
+def installed_models(folder: str | os.PathLike = WEIGHTS_DIR) -> list[dict[str, Any]]:
+    """One record per ``*.safetensors`` in ``folder``: name, path, target, preset, parameters, size, card."""
+    from networks.checkpoint import read_metadata
+
+    out = []
+    for p in sorted(Path(folder).glob("*.safetensors")):
+        try:
+            config, card = read_metadata(p)
+        except ValueError as exc:
+            out.append({"name": p.stem, "path": str(p), "error": str(exc)})
+            continue
+        out.append({"name": p.stem, "path": str(p), "target": config.target, "preset": config.preset,
+                    "size_mb": round(p.stat().st_size / 1e6, 2), "card": card,
+                    "card_file": str(p.with_suffix(".md")) if p.with_suffix(".md").exists() else None})
+    return out
+
+
+def card_markdown(name: str, config, card: dict[str, Any], notes: str = "") -> str:
+    """A model card (Markdown) from the card metadata stored with the weights."""
+    val = card.get("validation") or {}
+    tc = card.get("train_config") or {}
+    lines = [
+        f"# {name}", "",
+        f"SDM-UniPS **{config.target}** network, preset `{config.preset}` "
+        f"(canonical resolution {config.canonical_resolution}, native input side "
+        f"{config.extra.get('native_resolution', 2 * config.canonical_resolution)}). Trained by matcap on matcap's own "
+        "synthetic data; licence MIT (same as matcap).", "",
+        "| field | value |", "|---|---|",
+        f"| steps | {card.get('steps', '?')} |",
+        f"| wall time | {card.get('wall_time_s', '?')} s |",
+        f"| training data | `{card.get('data', '?')}` ({card.get('train_scenes', '?')} scenes) |",
+        f"| validation data | `{card.get('val_data', '?')}` |",
+        f"| processes | {card.get('world_size', 1)} |",
+    ]
+    for k in ("lr", "batch", "weight_decay", "warmup_steps", "decay_every", "decay_factor", "seed", "dropout",
+              "canonical_resolution", "bf16"):
+        if k in tc:
+            lines.append(f"| {k} | {tc[k]} |")
+    if "sample" in tc:
+        lines.append(f"| sampling | {json.dumps(tc['sample'])} |")
+    lines += ["", "## Validation (synthetic test split)", ""]
+    if val:
+        lines += ["| metric | value |", "|---|---|"] + [f"| {k} | {v:.3f} |" for k, v in sorted(val.items())]
+    else:
+        lines.append("none recorded")
+    if notes:
+        lines += ["", notes.strip()]
+    return "\n".join(lines) + "\n"
+
+
+def install(weights: str | os.PathLike, name: str, *, fp16: bool = True, overwrite: bool = False,
+            notes: str = "", folder: str | os.PathLike = WEIGHTS_DIR) -> Path:
+    """Copy a trained run's weights into ``folder`` as ``NAME.safetensors`` (fp16 if asked) + ``NAME.md``."""
+    import torch
+    from safetensors.torch import load_file, save_file
+
+    from matcap.imageio import atomic_path, write_text_atomic
+    from networks.checkpoint import CARD_KEY, CONFIG_KEY, read_metadata
+
+    src = Path(weights)
+    config, card = read_metadata(src)
+    dst = Path(folder) / f"{name}.safetensors"
+    if dst.exists() and not overwrite:
+        raise MatcapError(f"{dst} exists; pass --overwrite to replace it")
+    state = load_file(str(src))
+    if fp16:
+        state = {k: v.to(torch.float16) if v.is_floating_point() else v for k, v in state.items()}
+    card = dict(card, stored_dtype="float16" if fp16 else "float32", installed_from=str(src))
+    meta = {"format": "pt", CONFIG_KEY: config.to_json(), CARD_KEY: json.dumps(card, sort_keys=True)}
+    with atomic_path(dst) as tmp:
+        save_file(state, tmp, metadata=meta)
+    write_text_atomic(dst.with_suffix(".md"), card_markdown(name, config, card, notes))
+    return dst

@@ -1,0 +1,463 @@
+"""Relight SVBRDF maps (a capture result, a texture set from disk, or a ``MaterialMaps``) with Mitsuba 3.
+
+    from matcap import relight
+    images = relight("result/", env="studio.exr", rotate=90, exposure=-1, out="result/")
+
+Each environment map gives one render (point / directional lights are added to every render; with no
+environment map, the lights alone give one render). With ``out`` set, each render is written as
+``relight_<name>.exr`` (linear radiance, black background) and ``relight_<name>.png`` (tone mapped, see
+:func:`tonemap`; alpha = mask coverage, so the background is transparent).
+
+Tone mapping (PNG only, the EXR stays linear): the ACES filmic curve fit of Narkowicz (2015),
+``f(x) = x (2.51 x + 0.03) / (x (2.43 x + 0.59) + 0.14)`` applied per channel to the linear radiance, clipped to
+[0, 1], then sRGB-encoded. ``tonemap="clip"`` gives plain clip + sRGB instead.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import types
+import re
+import warnings
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from matcap.errors import MatcapError
+from scenes.materialmaps import MaterialMaps
+
+ENV_SUFFIXES = (".exr", ".hdr")
+DEFAULT_ENVMAP = "studio_small_03.exr"
+TONEMAPS = ("aces", "clip")
+
+
+def default_envmap_path() -> Path:
+    """The bundled CC0 environment map (Poly Haven "studio_small_03", 512x256, see matcap/data/envmaps)."""
+    return Path(__file__).resolve().parent / "data" / "envmaps" / DEFAULT_ENVMAP
+
+
+# --------------------------------------------------------------------------------------------- inputs
+
+
+def _find(folder: Path, stem: str) -> Path | None:
+    for suffix in (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr"):
+        p = folder / f"{stem}{suffix}"
+        if p.is_file():
+            return p
+    return None
+
+
+def _resize(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    return cv2.resize(arr, size, interpolation=cv2.INTER_AREA)
+
+
+def maps_from_texture_set(folder: str | os.PathLike, max_size: int | None = None) -> MaterialMaps:
+    """Read a PBR texture set: ``basecolor`` (sRGB), ``arm``/``orm`` (R occlusion, G roughness, B metallic,
+    linear) or ``roughness`` (+ optional ``metallic``), ``normal_gl`` (OpenGL tangent space, +Y up; ``normal``
+    is taken as OpenGL too; ``normal_dx`` has its green flipped). Missing maps are left None (defaults at render
+    time). The whole image is the mask. ``max_size`` downsamples (area) so the longer side is at most that.
+    """
+    from matcap.imageio import read_image, to_linear_float
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise MatcapError(f"{folder}: not a folder")
+    base = _find(folder, "basecolor") or _find(folder, "base_color") or _find(folder, "albedo")
+    packed = _find(folder, "arm") or _find(folder, "orm")
+    rough = _find(folder, "roughness")
+    metal = _find(folder, "metallic") or _find(folder, "metalness")
+    normal_path, flip_green = _find(folder, "normal_gl") or _find(folder, "normal"), False
+    if normal_path is None and _find(folder, "normal_dx") is not None:
+        normal_path, flip_green = _find(folder, "normal_dx"), True
+    if base is None and normal_path is None:
+        raise MatcapError(f"{folder}: no basecolor.* or normal_gl.* texture (not a texture set)")
+
+    def linear(path: Path, srgb: bool) -> np.ndarray:
+        return to_linear_float(read_image(path), decode_srgb_8bit=srgb)[0]
+
+    def grey(path: Path) -> np.ndarray:
+        x = linear(path, False)
+        # single-channel files come back repeated; packed files (roughness in G, R = B = 1) use G
+        return x[..., 1]
+
+    shape = None
+    arrays: dict[str, np.ndarray | None] = {"base_color": None, "roughness": None, "metallic": None, "normal": None}
+    if base is not None:
+        img = read_image(base)
+        x, _ = to_linear_float(img, decode_srgb_8bit=True)
+        if img.pixels.dtype == np.uint16:  # a 16-bit basecolor file is still sRGB-encoded
+            from matcap.imageio import srgb_to_linear
+
+            x = srgb_to_linear(x)
+        arrays["base_color"] = x
+    if packed is not None:
+        x = linear(packed, False)
+        arrays["roughness"], arrays["metallic"] = x[..., 1], x[..., 2]
+    if rough is not None:
+        arrays["roughness"] = grey(rough)
+    if metal is not None:
+        arrays["metallic"] = grey(metal)
+    if normal_path is not None:
+        n = linear(normal_path, False) * 2.0 - 1.0
+        if flip_green:
+            n[..., 1] *= -1.0
+        arrays["normal"] = n
+    for value in arrays.values():
+        if value is not None:
+            shape = shape or value.shape[:2]
+    h, w = shape
+    target = (w, h)
+    if max_size and max(h, w) > max_size:
+        s = max_size / max(h, w)
+        target = (max(1, round(w * s)), max(1, round(h * s)))
+    for key, value in arrays.items():
+        if value is not None and (value.shape[1], value.shape[0]) != target:
+            arrays[key] = _resize(np.ascontiguousarray(value), target)
+    normal = arrays["normal"]
+    if normal is None:
+        normal = np.zeros((target[1], target[0], 3), np.float32)
+        normal[..., 2] = 1.0
+    normal = normal / np.maximum(np.linalg.norm(normal, axis=2, keepdims=True), 1e-6)
+    return MaterialMaps(
+        normal=normal,
+        mask=np.ones((target[1], target[0]), bool),
+        base_color=arrays["base_color"],
+        roughness=arrays["roughness"],
+        metallic=arrays["metallic"],
+        meta={"source": str(folder), "kind": "texture set", "normal_convention": "OpenGL tangent = camera space"},
+    )
+
+
+def load_maps(source, max_size: int | None = None) -> MaterialMaps:
+    """A ``MaterialMaps`` from a ``MaterialMaps``, a capture result folder (``normal.exr``) or a texture set."""
+    if isinstance(source, MaterialMaps):
+        return source
+    folder = Path(source)
+    if not folder.is_dir():
+        raise MatcapError(f"{folder}: no such folder (expected a capture result or a texture set)")
+    if (folder / "normal.exr").is_file():
+        from matcap.results import read_result
+
+        maps = read_result(folder)
+        if max_size and max(maps.shape) > max_size:
+            maps = downsample_maps(maps, max_size)
+        return maps
+    return maps_from_texture_set(folder, max_size=max_size)
+
+
+def downsample_maps(maps: MaterialMaps, max_size: int) -> MaterialMaps:
+    """Area-downsample every map so the longer side is at most ``max_size`` (normals renormalised)."""
+    h, w = maps.shape
+    if max(h, w) <= max_size:
+        return maps
+    s = max_size / max(h, w)
+    size = (max(1, round(w * s)), max(1, round(h * s)))
+    mask = _resize(maps.mask.astype(np.float32), size) > 0.5
+    n = _resize(maps.normal, size)
+    n = n / np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-6)
+    n[~mask] = 0.0
+
+    def r(x):
+        return None if x is None else _resize(np.ascontiguousarray(x), size)
+
+    return MaterialMaps(normal=n, mask=mask, base_color=r(maps.base_color), roughness=r(maps.roughness),
+                        metallic=r(maps.metallic), height=None if maps.height is None else r(maps.height) * s,
+                        meta=dict(maps.meta))
+
+
+def load_envmap(path: str | os.PathLike) -> np.ndarray:
+    """(H, W, 3) float32 linear equirectangular radiance from an ``.exr`` or Radiance ``.hdr`` file."""
+    from matcap.imageio import read_image
+
+    path = Path(path)
+    if path.suffix.lower() not in ENV_SUFFIXES:
+        raise MatcapError(f"{path}: environment maps must be .exr or .hdr")
+    if not path.is_file():
+        raise MatcapError(f"{path}: no such file")
+    pixels = read_image(path).pixels.astype(np.float32)
+    h, w = pixels.shape[:2]
+    if abs(w / h - 2.0) > 0.1:
+        raise MatcapError(f"{path}: {w}x{h} is not an equirectangular (2:1) map")
+    return pixels
+
+
+def env_paths(envs) -> list[Path]:
+    """Expand ``envs`` (a file, a folder of .exr/.hdr, or a list of them) to sorted files; None -> default."""
+    if envs is None:
+        return [default_envmap_path()]
+    items = [envs] if isinstance(envs, (str, os.PathLike)) else list(envs)
+    out: list[Path] = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted(q for q in p.iterdir() if q.suffix.lower() in ENV_SUFFIXES and q.is_file())
+            if not found:
+                raise MatcapError(f"{p}: no .exr or .hdr environment maps in this folder")
+            out.extend(found)
+        else:
+            if not p.is_file():
+                raise MatcapError(f"{p}: no such environment map")
+            out.append(p)
+    return out
+
+
+def parse_vec3(value, what: str = "vector") -> tuple[float, float, float]:
+    """``"X,Y,Z"`` or a 3-sequence -> 3 floats (one-line error otherwise)."""
+    if isinstance(value, str):
+        parts = [p for p in re.split(r"[,\s]+", value.strip()) if p]
+    else:
+        parts = list(value)
+    try:
+        vec = tuple(float(p) for p in parts)
+    except (TypeError, ValueError):
+        raise MatcapError(f"{what} must be three numbers X,Y,Z, got {value!r}") from None
+    if len(vec) != 3 or not all(np.isfinite(vec)):
+        raise MatcapError(f"{what} must be three finite numbers X,Y,Z, got {value!r}")
+    return vec  # type: ignore[return-value]
+
+
+def parse_rgb(value, what: str) -> tuple[float, float, float]:
+    """A scalar or an RGB triple (``"W"`` or ``"R,G,B"``) -> 3 non-negative floats."""
+    if isinstance(value, (int, float)):
+        vec = (float(value),) * 3
+    elif isinstance(value, str) and "," not in value:
+        try:
+            vec = (float(value),) * 3
+        except ValueError:
+            raise MatcapError(f"{what} must be a number or R,G,B, got {value!r}") from None
+    else:
+        vec = parse_vec3(value, what)
+    if not all(np.isfinite(vec)) or min(vec) < 0:
+        raise MatcapError(f"{what} must be finite and >= 0, got {value!r}")
+    return vec
+
+
+def parse_size(value) -> tuple[int, int] | None:
+    """``"WxH"``, ``"N"`` (square) or a pair -> (width, height)."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        parts = value.lower().replace("*", "x").split("x")
+    elif isinstance(value, int):
+        parts = [value, value]
+    else:
+        parts = list(value)
+    try:
+        nums = [int(p) for p in parts]
+    except (TypeError, ValueError):
+        raise MatcapError(f"size must be WxH, got {value!r}") from None
+    if len(nums) == 1:
+        nums = nums * 2
+    if len(nums) != 2 or min(nums) < 1 or max(nums) > 16384:
+        raise MatcapError(f"size must be WxH with 1..16384 pixels per side, got {value!r}")
+    return nums[0], nums[1]
+
+
+def fit_size(maps: MaterialMaps, size) -> tuple[int, int]:
+    """The render size: ``size`` (W, H), or a single number = the longer side (aspect kept); None: maps' size."""
+    h, w = maps.shape
+    if size is None:
+        return w, h
+    if isinstance(size, int) or (isinstance(size, str) and size.strip().isdigit()):
+        side = int(size)
+        if side < 1:
+            raise MatcapError(f"size must be positive, got {size!r}")
+        s = side / max(h, w)
+        return max(1, round(w * s)), max(1, round(h * s))
+    width, height = parse_size(size)
+    if abs(width / height - w / h) > 0.02 * (w / h):
+        raise MatcapError(f"size {width}x{height} does not keep the maps' aspect ratio {w}x{h}")
+    return width, height
+
+
+# -------------------------------------------------------------------------------------------- outputs
+
+
+def tonemap(linear: np.ndarray, mode: str = "aces") -> np.ndarray:
+    """Linear radiance -> display sRGB in [0, 1] (see the module docstring)."""
+    from matcap.imageio import linear_to_srgb
+
+    x = np.clip(np.nan_to_num(np.asarray(linear, np.float32)), 0.0, None)
+    if mode == "aces":
+        x = x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14)
+    elif mode != "clip":
+        raise MatcapError(f"tone mapping must be one of {', '.join(TONEMAPS)}, got {mode!r}")
+    return linear_to_srgb(np.clip(x, 0.0, 1.0))
+
+
+def write_render(stem: str | os.PathLike, linear: np.ndarray, coverage: np.ndarray | None = None,
+                 tonemap_mode: str = "aces") -> tuple[Path, Path]:
+    """Write ``<stem>.exr`` (linear RGB) and ``<stem>.png`` (8-bit sRGB tone mapped; RGBA if ``coverage``)."""
+    from matcap.imageio import write_exr, write_png
+
+    stem = Path(stem)
+    exr, png = stem.with_name(stem.name + ".exr"), stem.with_name(stem.name + ".png")
+    write_exr(exr, linear)
+    rgb = tonemap(linear, tonemap_mode)
+    if coverage is not None and float(coverage.min()) < 1.0:
+        # un-premultiply so the transparent edge keeps its colour
+        rgb = tonemap(linear / np.maximum(coverage[..., None], 1e-3), tonemap_mode)
+        rgb = np.concatenate([rgb, coverage[..., None].astype(np.float32)], axis=2)
+    write_png(png, rgb, bits=8)
+    umask = os.umask(0)
+    os.umask(umask)
+    for p in (exr, png):  # atomic writers create 0600 files
+        try:
+            p.chmod(0o666 & ~umask)
+        except OSError:
+            pass
+    return exr, png
+
+
+def _safe_name(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "render"
+
+
+def _num(v: float) -> str:
+    return f"{v:g}".replace("-", "m")
+
+
+# -------------------------------------------------------------------------------------------- relight
+
+
+def build_lights(
+    env_files: Sequence[Path] | None,
+    *,
+    rotate: float = 0.0,
+    exposure: float = 0.0,
+    point=None,
+    intensity=None,
+    directional=None,
+    irradiance=None,
+) -> list[tuple[str, list, dict[str, np.ndarray]]]:
+    """The renders to make: ``[(name, lights, envmap pixels)]`` (one per environment map, or one for the
+    point / directional lights alone)."""
+    from scenes.lights import DirectionalLight, EnvironmentLight, PointLight
+
+    if not np.isfinite(rotate) or not np.isfinite(exposure):
+        raise MatcapError("rotate and exposure must be finite numbers")
+    gain = float(2.0 ** exposure)
+    extra: list = []
+    tag = []
+    if point is not None:
+        pos = parse_vec3(point, "point light position")
+        if pos[2] <= 0:
+            raise MatcapError(f"point light {point!r} must be in front of the surface (Z > 0)")
+        dist2 = float(np.dot(pos, pos))
+        # default: irradiance pi at the centre when the light faces it (white Lambertian -> radiance 1)
+        inten = parse_rgb(intensity, "intensity") if intensity is not None else (np.pi * dist2,) * 3
+        extra.append(PointLight(position=pos, intensity=tuple(gain * v for v in inten)))
+        tag.append("point_" + "_".join(_num(v) for v in pos))
+    elif intensity is not None:
+        raise MatcapError("intensity needs a point light (point=X,Y,Z / --point)")
+    if directional is not None:
+        d = parse_vec3(directional, "directional light direction")
+        if np.linalg.norm(d) == 0:
+            raise MatcapError("directional light direction must not be zero")
+        irr = parse_rgb(irradiance, "irradiance") if irradiance is not None else (np.pi,) * 3
+        extra.append(DirectionalLight(direction=d, irradiance=tuple(gain * v for v in irr)))
+        tag.append("directional_" + "_".join(_num(v) for v in d))
+    elif irradiance is not None:
+        raise MatcapError("irradiance needs a directional light (directional=X,Y,Z / --directional)")
+    jobs = []
+    for path in env_files or []:
+        pixels = load_envmap(path)
+        light = EnvironmentLight(source=str(path), rotation_deg=float(rotate), scale=gain)
+        jobs.append((_safe_name(Path(path).stem), [light, *extra], {str(path): pixels}))
+    if not jobs:
+        if not extra:
+            raise MatcapError("nothing lights the scene: give an environment map, a point or a directional light")
+        jobs.append((_safe_name("_".join(tag)), extra, {}))
+    return jobs
+
+
+def relight(
+    maps_or_result_dir,
+    *,
+    env=None,
+    rotate: float = 0.0,
+    exposure: float = 0.0,
+    point=None,
+    intensity=None,
+    directional=None,
+    irradiance=None,
+    spp: int | None = None,
+    size=None,
+    out=None,
+    overwrite: bool = False,
+    seed: int = 0,
+    tonemap_mode: str = "aces",
+    progress: bool = False,
+) -> list[np.ndarray]:
+    """Render the maps under new light; returns one (H, W, 3) linear float32 image per render.
+
+    maps_or_result_dir: ``MaterialMaps``, a capture result folder or a texture-set folder.
+    env: an .exr/.hdr path, a folder of them, or a list; None = the bundled studio map unless only a point or
+    directional light is given. rotate: degrees about +y (up); exposure: EV, scales every light by 2**EV.
+    point: ``(X, Y, Z)`` or ``"X,Y,Z"`` in camera space (the surface spans x in [-1, 1]); intensity: W/sr, scalar
+    or RGB (default pi * |P|^2: irradiance pi at the centre). directional: direction toward the light;
+    irradiance (default pi). spp: samples per pixel (default ``renderers.relight.DEFAULT_SPP``). size: ``"WxH"``,
+    (W, H) or the longer side. out: folder for ``relight_<name>.exr/.png`` (refuses to overwrite unless
+    ``overwrite``).
+    """
+    from renderers.relight import DEFAULT_SPP, mask_coverage, render
+
+    maps = load_maps(maps_or_result_dir)
+    spp = DEFAULT_SPP if spp is None else int(spp)
+    if spp < 1 or spp > 65536:
+        raise MatcapError(f"spp must be between 1 and 65536, got {spp}")
+    if tonemap_mode not in TONEMAPS:
+        raise MatcapError(f"tone mapping must be one of {', '.join(TONEMAPS)}, got {tonemap_mode!r}")
+    width, height = fit_size(maps, size)
+    if env is None and point is None and directional is None:
+        files = env_paths(None)
+    else:
+        files = env_paths(env) if env is not None else []
+    jobs = build_lights(files, rotate=rotate, exposure=exposure, point=point, intensity=intensity,
+                        directional=directional, irradiance=irradiance)
+    targets = []
+    if out is not None:
+        out = Path(out)
+        if out.exists() and not out.is_dir():
+            raise MatcapError(f"{out} exists and is not a folder")
+        names = [name for name, _, _ in jobs]
+        if len(set(names)) != len(names):
+            raise MatcapError("two environment maps have the same name; rename one")
+        for name in names:
+            stem = out / f"relight_{name}"
+            for suffix in (".exr", ".png"):
+                if stem.with_name(stem.name + suffix).exists() and not overwrite:
+                    raise MatcapError(f"{stem}{suffix} already exists; pass --overwrite to replace it")
+            targets.append(stem)
+    images = []
+    iterator = jobs
+    if progress and len(jobs) > 1:
+        from tqdm import tqdm
+
+        iterator = tqdm(jobs, desc="relight", unit="render")
+    for i, (name, lights, pixels) in enumerate(iterator):
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            img = render(maps, lights, pixels, spp=spp, size=(width, height), seed=seed)
+        images.append(img)
+        if out is not None:
+            write_render(targets[i], img, mask_coverage(maps.mask, width, height), tonemap_mode)
+    return images
+
+
+def relight_outputs(out, names: Iterable[str]) -> list[Path]:
+    """The files :func:`relight` writes for render ``names`` into ``out``."""
+    return [Path(out) / f"relight_{n}{s}" for n in names for s in (".exr", ".png")]
+
+
+# ``from matcap import relight`` gives this module (Python binds the submodule); make it callable so that
+# ``relight(...)`` works while ``matcap.relight.maps_from_texture_set`` etc. stay reachable.
+class _CallableModule(types.ModuleType):
+    def __call__(self, *args, **kwargs):
+        return relight(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

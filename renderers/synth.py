@@ -1,0 +1,164 @@
+"""Render synthetic photometric-stereo scenes with Mitsuba 3 (imported lazily): one path-traced image per BASIS
+light plus ground-truth passes from the ``aov`` integrator. Takes numpy arrays, returns numpy arrays.
+
+Camera: orthographic, looking down -z from z = +10, seeing world x, y in [-1, 1] (world = our camera space:
+x right, y up, z toward the camera), so world normals are camera normals. Rendering is deterministic for a
+given ``seed`` (independent sampler with a fixed seed; ground-truth passes use one pixel-centre sample).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from renderers.emitters import emitter_dict
+from scenes.lights import EnvironmentLight, Light
+from scenes.synth_build import RenderObject, finalize_normals
+
+DEFAULT_SPP = 16
+MAX_DEPTH = 4  # direct light + up to two indirect bounces (measured trade-off, see docs/synth.md)
+
+
+@dataclass
+class SynthRender:
+    basis: np.ndarray  # (B, H, W, 3) float32 linear
+    normal: np.ndarray  # (H, W, 3) float32, camera space, zeros outside mask
+    mask: np.ndarray  # (H, W) bool: any surface (objects and background surface)
+    object_mask: np.ndarray  # (H, W) bool: objects only
+    base_color: np.ndarray  # (H, W, 3)
+    roughness: np.ndarray  # (H, W)
+    metallic: np.ndarray  # (H, W)
+    stats: dict
+
+
+def _mi():
+    from renderers.variant import choose_variant
+
+    choose_variant()
+    import mitsuba as mi
+
+    return mi
+
+
+def _bitmap_texture(mi, arr: np.ndarray, uv_scale: float) -> dict:
+    arr = np.ascontiguousarray(np.asarray(arr, np.float32))
+    return {"type": "bitmap", "bitmap": mi.Bitmap(arr), "raw": True, "filter_type": "bilinear",
+            "wrap_mode": "repeat", "to_uv": mi.ScalarTransform4f().scale([uv_scale, uv_scale, 1.0])}
+
+
+def _make_mesh(mi, name: str, obj: RenderObject, bsdf) -> object:
+    g = obj.geometry
+    props = mi.Properties()
+    props["bsdf"] = bsdf
+    mesh = mi.Mesh(name, len(g.vertices), len(g.faces), props=props, has_vertex_normals=g.normals is not None,
+                   has_vertex_texcoords=True)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(np.ascontiguousarray(g.vertices, np.float32).ravel())
+    params["faces"] = mi.UInt32(np.ascontiguousarray(g.faces, np.uint32).ravel())
+    if g.normals is not None:
+        params["vertex_normals"] = mi.Float(np.ascontiguousarray(g.normals, np.float32).ravel())
+    params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(g.uv, np.float32).ravel())
+    params.update()
+    return mesh
+
+
+def _principled(mi, obj: RenderObject):
+    return mi.load_dict({"type": "twosided", "bsdf": {
+        "type": "principled",
+        "base_color": _bitmap_texture(mi, obj.base_color, obj.uv_scale),
+        "roughness": _bitmap_texture(mi, obj.roughness[..., None], obj.uv_scale),
+        "metallic": _bitmap_texture(mi, obj.metallic[..., None], obj.uv_scale),
+        "specular": float(obj.specular),
+    }})
+
+
+def _params_as_albedo(mi, obj: RenderObject):
+    """A diffuse BSDF whose reflectance is (roughness, metallic, is_background): read back with the albedo AOV."""
+    tex = np.stack([obj.roughness, obj.metallic, np.full_like(obj.roughness, 1.0 if obj.is_background else 0.0)], -1)
+    return mi.load_dict({"type": "twosided", "bsdf": {"type": "diffuse",
+                                                      "reflectance": _bitmap_texture(mi, tex, obj.uv_scale)}})
+
+
+def _sensor(mi, resolution: int, spp: int, seed: int, centre: bool = False):
+    sampler = ({"type": "stratified", "sample_count": 1, "jitter": False, "seed": int(seed)} if centre
+               else {"type": "independent", "sample_count": int(spp), "seed": int(seed)})
+    return mi.load_dict({
+        "type": "orthographic",
+        "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 10], target=[0, 0, 0], up=[0, 1, 0]),
+        "near_clip": 0.01, "far_clip": 100.0,
+        "sampler": sampler,
+        "film": {"type": "hdrfilm", "width": int(resolution), "height": int(resolution),
+                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+    })
+
+
+def _emitter(light: Light, envmaps: dict[str, np.ndarray], weight: float = 1.0) -> dict:
+    pixels = envmaps.get(light.source) if isinstance(light, EnvironmentLight) else None
+    if isinstance(light, EnvironmentLight) and pixels is None:
+        raise ValueError(f"environment map {light.source!r} not loaded")
+    d = emitter_dict(light, pixels)
+    if weight != 1.0:  # scale a copy (linearity test / direct renders of combined lights)
+        if d["type"] == "envmap":
+            d["scale"] = d["scale"] * weight
+        else:
+            key = "irradiance" if d["type"] == "directional" else "intensity"
+            d[key] = {"type": "rgb", "value": [v * weight for v in d[key]["value"]]}
+    return d
+
+
+class SceneRenderer:
+    """Holds the Mitsuba shapes of one scene; renders any set of lights on them."""
+
+    def __init__(self, objects: list[RenderObject], resolution: int, spp: int = DEFAULT_SPP, seed: int = 0,
+                 max_depth: int = MAX_DEPTH):
+        self.mi = mi = _mi()
+        self.objects = objects
+        self.resolution, self.spp, self.seed = int(resolution), int(spp), int(seed)
+        self.shapes = {f"shape_{k:02d}": _make_mesh(mi, f"shape_{k:02d}", o, _principled(mi, o))
+                       for k, o in enumerate(objects)}
+        self.sensor = _sensor(mi, resolution, spp, seed)
+        self.integrator = mi.load_dict({"type": "path", "max_depth": int(max_depth)})
+
+    def render(self, lights: list[Light], envmaps: dict[str, np.ndarray], weights: list[float] | None = None) -> np.ndarray:
+        """Linear (H, W, 3) float32 render with all ``lights`` on (each scaled by ``weights``)."""
+        mi = self.mi
+        weights = weights or [1.0] * len(lights)
+        scene = {"type": "scene", "sensor": self.sensor, **self.shapes}
+        for k, (light, w) in enumerate(zip(lights, weights)):
+            scene[f"light_{k:02d}"] = _emitter(light, envmaps, w)
+        img = mi.render(mi.load_dict(scene), integrator=self.integrator, spp=self.spp, seed=self.seed)
+        return np.array(img, dtype=np.float32)[..., :3]
+
+    def ground_truth(self) -> dict:
+        """Normals, masks and BRDF maps from two one-sample (pixel centre) AOV passes."""
+        mi = self.mi
+        sensor = _sensor(mi, self.resolution, 1, self.seed, centre=True)
+        aov = mi.load_dict({"type": "aov", "aovs": "nn:sh_normal,ng:geo_normal,alb:albedo,dd:depth"})
+        scene = mi.load_dict({"type": "scene", "sensor": sensor, **self.shapes})
+        a = np.array(mi.render(scene, integrator=aov, spp=1, seed=self.seed), dtype=np.float32)
+        param_shapes = {name: _make_mesh(mi, name, o, _params_as_albedo(mi, o))
+                        for (name, _), o in zip(self.shapes.items(), self.objects)}
+        scene2 = mi.load_dict({"type": "scene", "sensor": sensor, **param_shapes})
+        aov2 = mi.load_dict({"type": "aov", "aovs": "alb:albedo,dd:depth"})
+        b = np.array(mi.render(scene2, integrator=aov2, spp=1, seed=self.seed), dtype=np.float32)
+        hit = a[..., 9] > 0
+        hit2 = b[..., 3] > 0
+        normal, stats = finalize_normals(a[..., 0:3], a[..., 3:6], hit)
+        stats["mask_agreement"] = float((hit == hit2).mean())
+        zero3 = np.zeros(3, np.float32)
+        return {
+            "normal": normal, "mask": hit, "object_mask": hit & (b[..., 2] < 0.5),
+            "base_color": np.where(hit[..., None], np.clip(a[..., 6:9], 0, 1), zero3),
+            "roughness": np.where(hit, np.clip(b[..., 0], 0, 1), 0.0).astype(np.float32),
+            "metallic": np.where(hit, np.clip(b[..., 1], 0, 1), 0.0).astype(np.float32),
+            "stats": stats,
+        }
+
+
+def render_scene(objects: list[RenderObject], basis: list[Light], envmaps: dict[str, np.ndarray], resolution: int,
+                 spp: int = DEFAULT_SPP, seed: int = 0) -> SynthRender:
+    """Render every basis light separately plus the ground truth."""
+    r = SceneRenderer(objects, resolution, spp, seed)
+    renders = np.stack([r.render([light], envmaps) for light in basis])
+    gt = r.ground_truth()
+    return SynthRender(basis=renders, **gt)

@@ -1,0 +1,90 @@
+"""Shared fixtures: tiny datasets made with numpy (fast, no Mitsuba), paths to shared assets."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+
+torch.set_num_threads(2)
+
+
+def shared_path(*parts: str) -> Path:
+    """A path under ../shared; skips the test when it is not there."""
+    p = SHARED.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"shared asset {p} is not available")
+    return p
+
+
+def lambertian_scene(rng: np.random.Generator, size: int) -> dict[str, np.ndarray]:
+    """A sphere (random centre/radius/albedo) on a background plane, rendered Lambertian in numpy.
+
+    Basis: 4 directional lights, 1 ambient "env" (irradiance (1 + n_z) / 2), 1 point light.
+    """
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+    x = (xx + 0.5) / size * 2 - 1
+    y = 1 - (yy + 0.5) / size * 2
+    cx, cy = rng.uniform(-0.3, 0.3, 2)
+    r = rng.uniform(0.35, 0.6)
+    d2 = (x - cx) ** 2 + (y - cy) ** 2
+    inside = d2 < r * r
+    nz = np.sqrt(np.clip(r * r - d2, 0, None)) / r
+    normal = np.stack([(x - cx) / r, (y - cy) / r, nz], axis=2)
+    normal[~inside] = (0, 0, 1)
+    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
+    albedo = np.where(inside[..., None], rng.uniform(0.2, 0.9, 3), rng.uniform(0.2, 0.9, 3)).astype(np.float32)
+    albedo *= 1 + 0.2 * np.sin(xx * rng.uniform(0.1, 0.5))[..., None]
+    basis, kinds = [], []
+    for _ in range(4):
+        L = rng.normal(size=3)
+        L[2] = abs(L[2]) + 0.5
+        L /= np.linalg.norm(L)
+        basis.append(albedo * np.clip(normal @ L, 0, None)[..., None])
+        kinds.append("directional")
+    basis.append(albedo * ((1 + normal[..., 2]) / 2)[..., None])
+    kinds.append("env")
+    P = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), 2.0])
+    pos = np.stack([x, y, np.where(inside, cy * 0 + nz * r, 0)], axis=2)
+    v = P - pos
+    dist = np.linalg.norm(v, axis=2, keepdims=True)
+    basis.append(albedo * np.clip((normal * v / dist).sum(2), 0, None)[..., None] * 4 / dist**2)
+    kinds.append("point")
+    basis = np.stack(basis).astype(np.float32)
+    images = np.stack([basis[i % 4] + 0.3 * basis[4] for i in range(10)])
+    mask = np.ones((size, size), bool)
+    return {
+        "basis": basis.astype(np.float16), "basis_kind": np.array(kinds), "images": images.astype(np.float16),
+        "normal": normal.astype(np.float16), "mask": mask, "base_color": albedo.astype(np.float16),
+        "roughness": np.ones((size, size), np.float16), "metallic": np.zeros((size, size), np.float16),
+    }
+
+
+def make_dataset(root: Path, scenes: int, size: int, seed: int = 0, groups=("directional",)) -> Path:
+    rng = np.random.default_rng(seed)
+    names = []
+    for i in range(scenes):
+        name = f"scene_{i:06d}"
+        d = root / name
+        d.mkdir(parents=True)
+        np.savez(d / "data.npz", **lambertian_scene(rng, size))
+        (d / "spec.json").write_text(json.dumps({"lighting_group": groups[i % len(groups)]}))
+        names.append(name)
+    (root / "manifest.json").write_text(json.dumps({"scenes": names, "resolution": size}))
+    return root
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory) -> Path:
+    """6 numpy-rendered Lambertian scenes at 64x64 (train) ."""
+    return make_dataset(tmp_path_factory.mktemp("tinydata"), 6, 64, seed=1)
+
+
+@pytest.fixture(scope="session")
+def tiny_val_dataset(tmp_path_factory) -> Path:
+    return make_dataset(tmp_path_factory.mktemp("tinyval"), 2, 64, seed=2, groups=("directional", "environment"))

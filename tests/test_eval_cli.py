@@ -1,0 +1,122 @@
+"""`matcap eval` end to end on small analytic objects (no network needed)."""
+import json
+import sys
+import types
+
+import numpy as np
+import pytest
+
+import matcap
+from matcap import imageio
+from matcap.cli import main
+from matcap.evaluation import runner, toy
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    lights = toy.cone_lights(8, 35.0, seed=2)
+    n, m = toy.sphere_normals(32, max_angle_deg=50.0)
+    toy.write_diligent_object(root / "spherePNG", toy.render_lambertian(n, m, lights), m, n, lights)
+    n2, m2 = toy.plane_normals(16)
+    toy.write_diligent_object(root / "planePNG", toy.render_lambertian(n2, m2, lights), m2, n2, lights)
+    return root
+
+
+@pytest.fixture(scope="module")
+def uw_like(tmp_path_factory):
+    """A UW-layout capture (8-bit, lights.txt with a count line, no ground truth)."""
+    root = tmp_path_factory.mktemp("uw") / "uw_ball"
+    root.mkdir()
+    n, m = toy.sphere_normals(32, max_angle_deg=80.0)
+    lights = toy.cone_lights(12, 40.0, seed=5)
+    for k, img in enumerate(toy.render_lambertian(n, m, lights)):
+        imageio.write_png(root / f"ball.{k}.png", img, bits=8)
+    imageio.write_png(root / "ball.mask.png", m.astype(np.float32), bits=8)
+    (root / "lights.txt").write_text("12\n" + "\n".join(" ".join(f"{v:.6f}" for v in l) for l in lights) + "\n")
+    return root
+
+
+def test_least_squares_tables_and_error_maps(dataset, tmp_path, capsys):
+    out = tmp_path / "report"
+    js = tmp_path / "r.json"
+    rc = main(["eval", str(dataset), "--method", "least-squares", "--out", str(out), "--json", str(js), "--quiet"])
+    assert rc == 0
+    md = capsys.readouterr().out
+    assert "| object | group | images | resolution | mean | median |" in md
+    assert "Command: `matcap eval " in md and "--method least-squares" in md
+    report = json.loads(js.read_text())
+    assert report == json.loads((out / "results.json").read_text())
+    assert (out / "results.md").read_text() == md
+    rows = {r["object"]: r for r in report["objects"]}
+    assert set(rows) == {"spherePNG", "planePNG"}
+    for r in rows.values():
+        assert r["status"] == "ok" and r["mae"] < 0.5 and r["under10"] == 1.0
+        assert r["images_used"] == 8 and r["trials"] == 1 and r["seconds"] >= 0
+    assert rows["spherePNG"]["resolution"] == "32x32"
+    assert report["groups"]["diligent"]["evaluated"] == 2
+    emap = imageio.read_image(out / "error_maps" / "spherePNG.png").pixels
+    assert emap.dtype == np.uint8 and emap.shape == (32, 32 + 16, 3)
+
+
+def test_image_subsets_protocol(dataset, tmp_path, capsys):
+    js = tmp_path / "r.json"
+    rc = main(["eval", str(dataset), "--method", "least-squares-robust", "--objects", "spherePNG",
+               "--max-images", "5", "--trials", "3", "--json", str(js), "--quiet"])
+    assert rc == 0
+    (row,) = json.loads(js.read_text())["objects"]
+    assert row["images_used"] == 5 and row["trials"] == 3 and len(row["trial_mae"]) == 3
+    a = runner.trial_subsets("spherePNG", 8, 5, 3, seed=0)
+    assert [list(x) for x in a] == [list(x) for x in runner.trial_subsets("spherePNG", 8, 5, 3, seed=0)]
+    assert all(len(x) == 5 and list(x) == sorted(x) for x in a)
+    assert len({tuple(x) for x in a}) > 1
+    assert len(runner.trial_subsets("spherePNG", 8, None, 3, seed=0)) == 1
+
+
+def test_reference_mode_without_ground_truth(uw_like, tmp_path, capsys):
+    js = tmp_path / "r.json"
+    assert main(["eval", str(uw_like), "--json", str(js), "--quiet"]) == 0
+    assert "no ground-truth normals" in json.loads(js.read_text())["objects"][0]["status"]
+    rc = main(["eval", str(uw_like), "--method", "least-squares-robust", "--reference", "least-squares",
+               "--json", str(js), "--quiet"])
+    assert rc == 0
+    (row,) = json.loads(js.read_text())["objects"]
+    assert row["status"] == "ok" and row["against"] == "least-squares" and row["group"] == "uw"
+    assert row["mae"] < 5.0  # two baselines on a (shadowed, 8-bit) Lambertian sphere roughly agree
+
+
+def test_learned_method_gets_images_lazily(dataset, tmp_path, monkeypatch, capsys):
+    calls = []
+
+    def estimate(images, mask, *, weights=None, max_images=None, seed=0, device="cpu", progress=False):
+        calls.append((len(images), seed, weights))
+        return types.SimpleNamespace(normal=np.where(mask[:, :, None], [0.0, 0.0, 1.0], 0.0))
+
+    fake = types.ModuleType("matcap.capture")
+    fake.estimate = estimate
+    monkeypatch.setitem(sys.modules, "matcap.capture", fake)
+    monkeypatch.setattr(matcap, "capture", fake, raising=False)
+    js = tmp_path / "r.json"
+    rc = main(["eval", str(dataset), "--method", "sdm-unips", "--objects", "planePNG", "--max-images", "4",
+               "--trials", "2", "--weights", "w.safetensors", "--json", str(js), "--quiet"])
+    assert rc == 0
+    assert calls == [(4, 0, ["w.safetensors"]), (4, 1, ["w.safetensors"])]
+    (row,) = json.loads(js.read_text())["objects"]
+    tilt = np.degrees(np.arccos(0.9 / np.linalg.norm([0.3, -0.2, 0.9])))  # plane normal vs (0, 0, 1)
+    assert row["mae"] == pytest.approx(tilt, abs=1e-3)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--objects", "nope"], "unknown object(s) nope"),
+    (["--reference", "least-squares"], "--reference must differ"),
+    (["--method", "least-squares", "--max-images", "2"], "at least 3"),
+])
+def test_bad_input_is_one_line_exit_2(dataset, capsys, argv, message):
+    assert main(["eval", str(dataset), "--quiet", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("matcap eval: error: ") and message in err and err.count("\n") == 1
+
+
+def test_missing_folder_is_exit_2(tmp_path, capsys):
+    assert main(["eval", str(tmp_path / "nothing")]) == 2
+    assert "no such folder" in capsys.readouterr().err

@@ -1,0 +1,71 @@
+"""Angular-error metrics against hand-computed values."""
+import math
+
+import numpy as np
+import pytest
+
+from matcap.evaluation import metrics
+
+
+def _pred_gt():
+    s3 = math.sqrt(3.0)
+    gt = np.zeros((2, 2, 3))
+    gt[..., 2] = 1.0
+    pred = np.array([
+        [[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]],  # 0 deg, 45 deg (not unit length on purpose)
+        [[0.0, 2.0, 0.0], [s3, 0.0, 1.0]],   # 90 deg, 60 deg
+    ])
+    return pred, gt
+
+
+def test_error_map_exact_angles():
+    pred, gt = _pred_gt()
+    err = metrics.angular_error_map(pred, gt)
+    np.testing.assert_allclose(err, [[0.0, 45.0], [90.0, 60.0]], atol=1e-12)
+
+
+def test_summary_matches_hand_computed_values():
+    pred, gt = _pred_gt()
+    s = metrics.normal_metrics(pred, gt)
+    assert s["mae"] == pytest.approx((0 + 45 + 90 + 60) / 4, abs=1e-12)
+    assert s["median"] == pytest.approx((45 + 60) / 2, abs=1e-12)
+    assert (s["under10"], s["under20"], s["under30"]) == (0.25, 0.25, 0.25)
+    assert s["pixels"] == 4
+
+
+def test_mask_zero_gt_and_zero_prediction():
+    pred, gt = _pred_gt()
+    mask = np.array([[True, True], [False, True]])  # drop the 90 deg pixel
+    s = metrics.normal_metrics(pred, gt, mask)
+    assert s["mae"] == pytest.approx(35.0, abs=1e-12)
+    assert s["median"] == pytest.approx(45.0, abs=1e-12)
+    assert s["under10"] == pytest.approx(1 / 3)
+    assert s["pixels"] == 3
+    gt2 = gt.copy()
+    gt2[0, 1] = 0.0  # no ground truth there: not counted
+    assert metrics.normal_metrics(pred, gt2, mask)["mae"] == pytest.approx(30.0, abs=1e-12)
+    pred2 = pred.copy()
+    pred2[0, 0] = 0.0  # a method that gave up on a pixel scores 90 deg there
+    assert metrics.normal_metrics(pred2, gt, mask)["mae"] == pytest.approx((90 + 45 + 60) / 3, abs=1e-12)
+
+
+def test_small_angles_are_accurate():
+    a = np.radians(1e-4)
+    pred = np.array([[[np.sin(a), 0.0, np.cos(a)]]])
+    gt = np.array([[[0.0, 0.0, 1.0]]])
+    assert metrics.angular_error_map(pred, gt)[0, 0] == pytest.approx(1e-4, rel=1e-6)
+
+
+def test_thresholds_are_strict_and_empty_raises():
+    assert metrics.summarize_errors(np.array([10.0, 20.0, 30.0, np.nan]))["under10"] == 0.0
+    assert metrics.summarize_errors(np.array([9.99, 19.99, 29.99]))["under30"] == 1.0
+    with pytest.raises(ValueError):
+        metrics.summarize_errors(np.array([np.nan]))
+
+
+def test_colour_map_ends_and_background():
+    rgb = metrics.colorize_error(np.array([[0.0, 90.0, 200.0, np.nan]]))
+    np.testing.assert_allclose(rgb[0, 0], [0.0, 0.0, 0.5])
+    np.testing.assert_allclose(rgb[0, 1], [0.55, 0.0, 0.0])
+    np.testing.assert_allclose(rgb[0, 2], rgb[0, 1])  # clipped at 90
+    np.testing.assert_allclose(rgb[0, 3], 0.0)

@@ -1,0 +1,97 @@
+"""`matcap synth` orchestration: CLI errors, output layout, resume, shards, re-draw of failed scenes."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from matcap.cli import main
+
+pytest.importorskip("mitsuba")
+
+
+def _run(*args):
+    return main(["synth", "--no-progress", *args])
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--shard", "3/2"], "shard"),
+    (["--shard", "x"], "shard"),
+    (["--assets", "/nonexistent/assets"], "no such folder"),
+    (["--scenes", "0"], "scenes"),
+])
+def test_bad_input_is_one_line_exit_2(tmp_path, capsys, args, words):
+    base = ["--out", str(tmp_path / "d"), "--scenes", "2"]
+    code = _run(*(base + args))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and words in err[0] and err[0].startswith("matcap synth: error:")
+
+
+def test_empty_assets_dir_is_an_error(tmp_path, capsys):
+    (tmp_path / "assets").mkdir()
+    assert _run("--out", str(tmp_path / "d"), "--scenes", "1", "--assets", str(tmp_path / "assets")) == 2
+
+
+def test_layout_resume_shards_and_settings_guard(tmp_path, capsys):
+    from matcap.imageio import read_exr, read_image
+
+    out = tmp_path / "d"
+    common = ["--out", str(out), "--scenes", "3", "--resolution", "32", "--seed", "4", "--spp", "2"]
+    assert _run(*common, "--shard", "1/2") == 0  # scene 1 only
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["scenes"] == ["scene_000001"] and not m["complete"]
+    assert _run(*common, "--shard", "0/2") == 0  # scenes 0, 2
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["scenes"] == ["scene_000000", "scene_000001", "scene_000002"] and m["complete"]
+    assert (m["split"], m["resolution"], m["seed"]) == ("train", 32, 4) and "generator_version" in m
+    scene = out / "scene_000001"
+    stamp = (scene / "000.png").stat().st_mtime_ns
+    assert _run(*common) == 0  # resume: nothing re-rendered
+    assert (scene / "000.png").stat().st_mtime_ns == stamp
+    assert "0 rendered, 3 already done" in capsys.readouterr().out
+    # files
+    for k in range(10):
+        img = read_image(scene / f"{k:03d}.png").pixels
+        assert img.dtype == np.uint16 and img.shape == (32, 32, 3)
+    mask = read_image(scene / "mask.png").pixels[..., 0]
+    assert mask.dtype == np.uint8 and set(np.unique(mask)) <= {0, 255}
+    normal = read_exr(scene / "normal.exr")
+    assert normal.dtype == np.float32 and normal.shape == (32, 32, 3)
+    assert np.all(normal[mask == 0] == 0) and normal[..., 2].min() >= 0
+    d = np.load(scene / "data.npz")
+    assert d["basis"].shape == (9, 32, 32, 3) and d["basis"].dtype == np.float16
+    assert list(d["basis_kind"]) == ["env"] * 3 + ["directional"] * 3 + ["point"] * 3
+    assert d["images"].shape == (10, 32, 32, 3) and d["mask"].dtype == bool
+    assert d["roughness"].shape == (32, 32) and d["base_color"].shape == (32, 32, 3)
+    lights = json.loads((scene / "lights.json").read_text())
+    assert len(lights["images"]) == 10 and all(x["config"] in "abcde" for x in lights["images"])
+    # image k = clip(exposure * sum_b w_b basis_b)
+    x = lights["images"][0]
+    again = np.clip(np.tensordot(np.float32(x["weights"]), d["basis"].astype(np.float32), 1) * x["exposure"], 0, 1)
+    assert np.abs(again - d["images"][0].astype(np.float32)).max() < 3e-3
+    spec = json.loads((scene / "spec.json").read_text())
+    assert spec["name"] == "scene_000001" and spec["index"] == 1
+    assert not [p for p in os.listdir(out) if p.startswith(".tmp-")]
+    # other settings into the same folder are refused
+    assert _run("--out", str(out), "--scenes", "3", "--resolution", "64", "--seed", "4") == 2
+
+
+def test_failed_scene_is_redrawn_and_logged(tmp_path, monkeypatch):
+    import matcap.synth as S
+
+    real = S.render_spec
+
+    def flaky(spec, cache, spp):
+        result = real(spec, cache, spp)
+        if spec.attempt == 0:
+            result.problems = ["image 3 is (nearly) black"]
+        return result
+
+    monkeypatch.setattr(S, "render_spec", flaky)
+    stats = S.run_synth(tmp_path / "d", 1, resolution=24, seed=2, spp=1, progress=False)
+    assert stats["rendered"] == 1 and stats["redrawn"] == 1
+    log = [json.loads(line) for line in (tmp_path / "d" / "failures.log").read_text().splitlines()]
+    assert log[0]["scene"] == "scene_000000" and log[0]["attempt"] == 0
+    spec = json.loads((tmp_path / "d" / "scene_000000" / "spec.json").read_text())
+    assert spec["attempt"] == 1

@@ -1,0 +1,112 @@
+"""Training: loss decreases, resume equals uninterrupted, DDP ranks agree, validation numbers, data sampling."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from networks.data import SampleSpec, SceneCache, draw_batch, list_scenes
+from networks.trainconfig import TrainConfig
+
+
+def _tc(data: Path, out: Path, **kw) -> TrainConfig:
+    sample = SampleSpec(resolution=64, min_images=3, max_images=4, pixel_samples=128)
+    base = dict(data=str(data), target="normal", preset="tiny", out=str(out), steps=6, batch=2, lr=2e-3,
+                warmup_steps=2, log_every=1, checkpoint_every_s=1e9, val_every_s=1e9, sample=sample)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def _state(path: Path) -> dict[str, torch.Tensor]:
+    from safetensors.torch import load_file
+
+    return load_file(str(path))
+
+
+def test_draw_batch_is_a_pure_function_of_the_step(tiny_dataset):
+    cache = SceneCache(list_scenes(tiny_dataset))
+    spec = SampleSpec(resolution=32, pixel_samples=64)
+    a = draw_batch(cache, spec, 2, seed=3, step=5)
+    b = draw_batch(cache, spec, 2, seed=3, step=5)
+    c = draw_batch(cache, spec, 2, seed=3, step=6)
+    for k in a:
+        assert np.array_equal(a[k], b[k]), k
+    assert a["images"].shape[0] == 2 and a["images"].shape[2:] == (3, 32, 32)
+    assert 3 <= a["images"].shape[1] <= 6
+    assert not np.array_equal(a["pixel_index"], c["pixel_index"])
+    # every sampled pixel lies in the loss mask and its normal is unit length
+    flat = a["loss_mask"].reshape(2, -1)
+    assert all(flat[i, a["pixel_index"][i]].all() for i in range(2))
+    n = a["normal"].reshape(2, -1, 3)[0, a["pixel_index"][0]]
+    assert np.allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-3)
+
+
+def test_loss_decreases(tiny_dataset, tmp_path):
+    from networks.train import train
+
+    import json
+
+    train(_tc(tiny_dataset, tmp_path, steps=40, lr=3e-3), progress=False)
+    losses = [json.loads(line)["loss"] for line in (tmp_path / "log.jsonl").read_text().splitlines()
+              if json.loads(line)["event"] == "train"]
+    assert len(losses) == 40
+    assert np.mean(losses[-10:]) < 0.8 * np.mean(losses[:10]), (np.mean(losses[:10]), np.mean(losses[-10:]))
+
+
+def test_resume_equals_uninterrupted(tiny_dataset, tmp_path):
+    from networks.train import train
+
+    train(_tc(tiny_dataset, tmp_path / "straight", steps=6), progress=False)
+    train(_tc(tiny_dataset, tmp_path / "split", steps=3), progress=False)
+    train(_tc(tiny_dataset, tmp_path / "split", steps=6), resume=True, progress=False)
+    a, b = _state(tmp_path / "straight" / "last.safetensors"), _state(tmp_path / "split" / "last.safetensors")
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+def test_validation_reports_error_per_lighting_group(tiny_dataset, tiny_val_dataset, tmp_path):
+    from networks.train import train
+
+    result = train(_tc(tiny_dataset, tmp_path, steps=2, val_data=str(tiny_val_dataset)), progress=False)
+    val = result["validation"]
+    assert set(val) >= {"mae", "mae_directional", "mae_environment"}
+    assert 0.0 < val["mae"] < 180.0
+    assert (tmp_path / "best.safetensors").exists()
+
+
+def test_resume_without_checkpoint_is_a_clear_error(tiny_dataset, tmp_path):
+    r = subprocess.run(
+        [sys.executable, "-m", "matcap", "train", "--data", str(tiny_dataset), "--preset", "tiny",
+         "--out", str(tmp_path / "none"), "--resume", "--steps", "1", "--quiet"],
+        capture_output=True, text=True,
+    )
+    assert r.returncode == 2
+    assert "checkpoint.pt does not exist" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.slow
+def test_ddp_two_processes_hold_identical_weights(tiny_dataset, tmp_path):
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29533",
+           "-m", "networks.train", "--data", str(tiny_dataset), "--preset", "tiny", "--out", str(tmp_path),
+           "--steps", "3", "--batch", "1", "--resolution", "64", "--pixel-samples", "64", "--max-images", "4",
+           "--threads", "1", "--save-all-ranks", "--quiet"]
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    a, b = _state(tmp_path / "final_rank0.safetensors"), _state(tmp_path / "final_rank1.safetensors")
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    # and training moved them away from the initial weights
+    from networks.config import get_config
+    from networks.model import SDMUniPS
+
+    torch.manual_seed(0)
+    fresh = SDMUniPS(get_config("tiny", "normal")).state_dict()
+    assert any(not torch.equal(fresh[k], a[k]) for k in a)
