@@ -8,7 +8,7 @@ cd "$(dirname "$0")"
 if command -v apt-get >/dev/null 2>&1; then
     SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
     $SUDO apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends libllvm19 chromium >/dev/null
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends libllvm19 chromium ffmpeg >/dev/null
 fi
 python -m pip install -q -e ".[test]"
 if [ -f tools/node/package-lock.json ] && command -v npm >/dev/null 2>&1; then

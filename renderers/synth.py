@@ -16,7 +16,8 @@ from scenes.lights import EnvironmentLight, Light
 from scenes.synth_build import RenderObject, finalize_normals
 
 DEFAULT_SPP = 16
-MAX_DEPTH = 4  # direct light + up to two indirect bounces (measured trade-off, see docs/synth.md)
+MAX_DEPTH = 3  # direct light + one indirect bounce (throughput trade-off, see docs/synth.md)
+DELTA_SPP_FACTOR = 0.5  # directional/point basis renders use half the spp (no environment noise)
 
 
 @dataclass
@@ -119,14 +120,15 @@ class SceneRenderer:
         self.sensor = _sensor(mi, resolution, spp, seed)
         self.integrator = mi.load_dict({"type": "path", "max_depth": int(max_depth)})
 
-    def render(self, lights: list[Light], envmaps: dict[str, np.ndarray], weights: list[float] | None = None) -> np.ndarray:
+    def render(self, lights: list[Light], envmaps: dict[str, np.ndarray], weights: list[float] | None = None,
+               spp: int | None = None) -> np.ndarray:
         """Linear (H, W, 3) float32 render with all ``lights`` on (each scaled by ``weights``)."""
         mi = self.mi
         weights = weights or [1.0] * len(lights)
         scene = {"type": "scene", "sensor": self.sensor, **self.shapes}
         for k, (light, w) in enumerate(zip(lights, weights)):
             scene[f"light_{k:02d}"] = _emitter(light, envmaps, w)
-        img = mi.render(mi.load_dict(scene), integrator=self.integrator, spp=self.spp, seed=self.seed)
+        img = mi.render(mi.load_dict(scene), integrator=self.integrator, spp=int(spp or self.spp), seed=self.seed)
         return np.array(img, dtype=np.float32)[..., :3]
 
     def ground_truth(self) -> dict:
@@ -157,8 +159,11 @@ class SceneRenderer:
 
 def render_scene(objects: list[RenderObject], basis: list[Light], envmaps: dict[str, np.ndarray], resolution: int,
                  spp: int = DEFAULT_SPP, seed: int = 0) -> SynthRender:
-    """Render every basis light separately plus the ground truth."""
+    """Render every basis light separately (environment maps at ``spp``, directional / point lights at half of it)
+    plus the ground truth."""
     r = SceneRenderer(objects, resolution, spp, seed)
-    renders = np.stack([r.render([light], envmaps) for light in basis])
+    delta_spp = max(1, int(round(spp * DELTA_SPP_FACTOR)))
+    renders = np.stack([r.render([light], envmaps, spp=None if isinstance(light, EnvironmentLight) else delta_spp)
+                        for light in basis])
     gt = r.ground_truth()
     return SynthRender(basis=renders, **gt)

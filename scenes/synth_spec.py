@@ -11,7 +11,7 @@ Recipe (after SDM-UniPS's PS-Mix, extended):
   in 70 % of the train scenes, none otherwise (so both masked and mask-free learning see their case).
 * Materials in three categories: diffuse, specular (dielectric) and metallic; base colour / roughness / metallic
   are constants, procedural patterns (noise, stripes, checkers, cells) or PBR texture sets, independently.
-* Lights: a BASIS of lights is rendered separately (train: 3 environment-map rotations, 3 directional lights,
+* Lights: a BASIS of lights is rendered separately (train: 2 environment-map rotations, 3 directional lights,
   3 point lights); each of the 10 images is a non-negative combination of the basis renders in one of the five
   configurations a) env, b) directional, c) point, d) env + directional, e) env + point.
 * Test split: fixed lighting groups like PS-Wild-Test (directional / environment / directional+environment) on
@@ -367,7 +367,7 @@ def _train_images(rng: np.random.Generator, kinds: list[str]) -> list[ImageSpec]
 # ----------------------------------------------------------------------------------------------- scene
 
 
-TRAIN_BASIS = {"env": 3, "directional": 3, "point": 3}
+TRAIN_BASIS = {"env": 2, "directional": 3, "point": 3}
 
 
 def generate_scene(global_seed: int, split: str, index: int, resolution: int,
@@ -384,7 +384,7 @@ def generate_scene(global_seed: int, split: str, index: int, resolution: int,
         basis = (_env_rotations(rng, source, TRAIN_BASIS["env"])
                  + [random_directional(rng) for _ in range(TRAIN_BASIS["directional"])]
                  + [random_point(rng) for _ in range(TRAIN_BASIS["point"])])
-        kinds = ["env"] * 3 + ["directional"] * 3 + ["point"] * 3
+        kinds = [k for k, n in TRAIN_BASIS.items() for _ in range(n)]
         images = _train_images(rng, kinds)
     else:
         group = TEST_GROUPS[index % len(TEST_GROUPS)]

@@ -38,10 +38,10 @@ def test_ranges_over_many_scenes():
         counts.append(len(s.objects))
         bg += s.background is not None
         assert len(s.images) == NUM_IMAGES
-        assert s.basis_kind == ["env"] * 3 + ["directional"] * 3 + ["point"] * 3
+        assert s.basis_kind == ["env"] * 2 + ["directional"] * 3 + ["point"] * 3
         for im in s.images:
             w = np.asarray(im.weights)
-            assert w.shape == (9,) and (w >= 0).all() and w.sum() > 0
+            assert w.shape == (8,) and (w >= 0).all() and w.sum() > 0
             configs.add(im.config)
             kinds = {s.basis_kind[j] for j in np.nonzero(w)[0]}
             assert kinds == {"a": {"env"}, "b": {"directional"}, "c": {"point"}, "d": {"env", "directional"},

@@ -60,8 +60,8 @@ def test_layout_resume_shards_and_settings_guard(tmp_path, capsys):
     assert normal.dtype == np.float32 and normal.shape == (32, 32, 3)
     assert np.all(normal[mask == 0] == 0) and normal[..., 2].min() >= 0
     d = np.load(scene / "data.npz")
-    assert d["basis"].shape == (9, 32, 32, 3) and d["basis"].dtype == np.float16
-    assert list(d["basis_kind"]) == ["env"] * 3 + ["directional"] * 3 + ["point"] * 3
+    assert d["basis"].shape == (8, 32, 32, 3) and d["basis"].dtype == np.float16
+    assert list(d["basis_kind"]) == ["env"] * 2 + ["directional"] * 3 + ["point"] * 3
     assert d["images"].shape == (10, 32, 32, 3) and d["mask"].dtype == bool
     assert d["roughness"].shape == (32, 32) and d["base_color"].shape == (32, 32, 3)
     lights = json.loads((scene / "lights.json").read_text())

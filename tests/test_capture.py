@@ -1,0 +1,175 @@
+"""`matcap capture`: folder reading, colour handling, geometry (pad / crop / scalable), outputs, bad input."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from matcap import imageio
+from matcap.capture import _from_square, _plan, _to_square, estimate, load_capture
+
+
+@pytest.fixture(scope="module")
+def tiny_weights(tmp_path_factory) -> Path:
+    from networks.checkpoint import save_weights
+    from networks.config import get_config
+    from networks.model import SDMUniPS
+
+    folder = tmp_path_factory.mktemp("weights")
+    for target in ("normal", "brdf"):
+        torch.manual_seed(0)
+        cfg = get_config("tiny", target)
+        save_weights(folder / f"{target}_tiny.safetensors", SDMUniPS(cfg), cfg, {"name": f"{target}_tiny"})
+    return folder
+
+
+def sphere_capture(folder: Path, h: int = 40, w: int = 56, n: int = 4, bits: int = 16, mask: bool = True) -> Path:
+    """A Lambertian sphere under n directional lights, written as PNGs (+ mask.png)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    yy, xx = np.mgrid[0:h, 0:w]
+    r = min(h, w) * 0.4
+    x, y = (xx - w / 2) / r, (h / 2 - yy) / r
+    inside = x**2 + y**2 < 1
+    normal = np.dstack([x, y, np.sqrt(np.clip(1 - x**2 - y**2, 0, 1))])
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        L = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 1.0])
+        L /= np.linalg.norm(L)
+        img = np.where(inside[..., None], 0.7 * np.clip(normal @ L, 0, 1)[..., None], 0.05) * np.ones(3)
+        imageio.write_png(folder / f"img_{i:02d}.png", img, bits=bits)
+    if mask:
+        imageio.write_png(folder / "mask.png", inside.astype(np.float32), bits=8)
+    return folder
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "matcap", *args], capture_output=True, text=True, timeout=600)
+
+
+def assert_one_line_error(r: subprocess.CompletedProcess, needle: str) -> None:
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    assert "Traceback" not in r.stderr
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and needle in lines[0], r.stderr
+
+
+# ------------------------------------------------------------------------------------------ reading
+
+
+def test_load_capture_colour_handling_and_skips(tmp_path):
+    folder = sphere_capture(tmp_path / "a", bits=8)
+    imageio.write_png(folder / "normal_gt.png", np.zeros((40, 56, 3)), bits=8)
+    cap = load_capture(folder)
+    assert len(cap.images) == 4 and cap.mask.shape == (40, 56)
+    assert cap.skipped == ["normal_gt.png"] and cap.colour == "8-bit sRGB decoded to linear"
+    raw = imageio.read_image(folder / "img_00.png").pixels
+    assert np.allclose(cap.images[0], imageio.srgb_to_linear(raw / 255.0), atol=1e-6)
+    assert load_capture(folder, linear=True).colour == "8-bit taken as linear (--linear)"
+    cap16 = load_capture(sphere_capture(tmp_path / "b", bits=16))
+    assert cap16.colour == "16-bit taken as linear"
+    raw16 = imageio.read_image(tmp_path / "b" / "img_01.png").pixels
+    assert np.array_equal(cap16.images[1], raw16.astype(np.float32) / 65535)
+
+
+@pytest.mark.parametrize("case", ["empty", "one", "mixed", "unreadable", "nan", "mask"])
+def test_bad_input_is_one_line_exit_2(tmp_path, case):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    if case == "empty":
+        needle = "no images found"
+    elif case == "one":
+        sphere_capture(folder, n=1, mask=False)
+        needle = "only one image"
+    elif case == "mixed":
+        sphere_capture(folder, n=2, mask=False)
+        imageio.write_png(folder / "img_09.png", np.zeros((41, 56, 3)))
+        needle = "all images must share one size"
+    elif case == "unreadable":
+        sphere_capture(folder, n=2, mask=False)
+        (folder / "img_05.png").write_bytes(b"not a png at all")
+        needle = "cannot read image"
+    elif case == "nan":
+        sphere_capture(folder, n=2, mask=False)
+        bad = np.ones((40, 56, 3), np.float32)
+        bad[3, 4] = np.nan
+        imageio.write_exr(folder / "img_07.exr", bad)
+        needle = "NaN or Inf"
+    else:
+        sphere_capture(folder, n=3, mask=False)
+        imageio.write_png(folder / "mask.png", np.ones((20, 20)), bits=8)
+        needle = "mask is 20x20 but the images are 56x40"
+    r = run_cli("capture", str(folder), "--out", str(tmp_path / "out"), "--weights", str(tmp_path))
+    assert_one_line_error(r, needle)
+    assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------------------------ geometry
+
+
+@pytest.mark.parametrize("shape,native", [((40, 56), 64), ((150, 90), 64), ((64, 64), 64)])
+def test_pad_and_crop_back_is_exact_where_not_resized(shape, native):
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
+    img = np.dstack([np.sin(xx / 7.0), np.cos(yy / 5.0), (xx + yy) / (shape[0] + shape[1])]).astype(np.float32)
+    fr = _plan(shape, None, native)
+    sq = _to_square(img, fr, "cubic")
+    assert sq.shape == (fr.size, fr.size, 3) and fr.size % native == 0
+    back = _from_square(sq, fr, shape)
+    if fr.size == fr.side:  # padded, not resized: exact
+        assert np.array_equal(back, img)
+    else:
+        assert np.abs(back - img).max() < 0.02  # smooth content survives the resize round trip
+
+
+# ------------------------------------------------------------------------------------------ end to end
+
+
+def test_capture_writes_every_output(tiny_weights, tmp_path):
+    folder = sphere_capture(tmp_path / "photos")
+    out = tmp_path / "result"
+    r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet")
+    assert r.returncode == 0, r.stderr
+    for name in ("normal.exr", "normal.png", "mask.png", "basecolor.png", "roughness.png", "metallic.png", "capture.json"):
+        assert (out / name).exists(), name
+    normal = imageio.read_exr(out / "normal.exr")
+    mask = imageio.read_image(out / "mask.png").pixels[..., 0] > 0
+    assert normal.shape == (40, 56, 3)
+    assert np.all(normal[~mask] == 0)
+    assert np.allclose(np.linalg.norm(normal[mask], axis=1), 1.0, atol=1e-4)
+    png = imageio.read_image(out / "normal.png")
+    assert png.kind == "16bit"
+    assert np.abs(png.pixels[mask] / 65535.0 - (normal[mask] + 1) / 2).max() <= 0.5 / 65535 + 1e-7
+    info = json.loads((out / "capture.json").read_text())
+    assert info["colour_handling"] == "16-bit taken as linear"
+    assert info["inputs"] == [f"img_{i:02d}.png" for i in range(4)]
+    assert set(info["models"]) == {"normal", "brdf"} and info["timings"]["total_s"] > 0
+    # refuses to overwrite, and leaves the old result intact
+    before = (out / "normal.exr").read_bytes()
+    r2 = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet")
+    assert_one_line_error(r2, "already holds files")
+    assert (out / "normal.exr").read_bytes() == before
+
+
+def test_capture_is_deterministic_for_a_seed_and_scalable_for_large_inputs(tiny_weights):
+    rng = np.random.default_rng(1)
+    images = [rng.random((150, 100, 3)).astype(np.float32) for _ in range(3)]
+    normal_only = [tiny_weights / "normal_tiny.safetensors"]
+    a = estimate(images, None, weights=normal_only, seed=3, pixel_samples=500)
+    b = estimate(images, None, weights=normal_only, seed=3, pixel_samples=500)
+    assert np.array_equal(a.normal, b.normal)
+    assert a.normal.shape == (150, 100, 3) and a.base_color is None
+    assert a.meta["models"]["normal"]["scalable"] is True  # 150 > native 64 -> padded to 192, 3x3 polyphase
+    assert a.meta["models"]["normal"]["input_side"] == 192
+
+
+def test_no_default_model_message(monkeypatch, tmp_path):
+    import matcap.capture as cap
+
+    monkeypatch.setattr(cap, "DEFAULT_WEIGHTS", {"normal": tmp_path / "none.safetensors",
+                                                 "brdf": tmp_path / "none2.safetensors"})
+    with pytest.raises(cap.MatcapError, match="no trained default model is installed.*matcap weights import"):
+        cap.resolve_weights(None)
