@@ -33,7 +33,7 @@ def main() -> None:
     cores = len(os.sched_getaffinity(0))
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "d"
-        w0, c0 = time.perf_counter(), time.process_time()
+        w0, _c0 = time.perf_counter(), time.process_time()
         run_synth(out, 1, args.resolution, args.seed, assets=args.assets, spp=args.spp, progress=False)
         w1, c1 = time.perf_counter(), time.process_time()
         stats = run_synth(out, 1 + args.scenes, args.resolution, args.seed, assets=args.assets, spp=args.spp,

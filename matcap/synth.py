@@ -20,7 +20,14 @@ import numpy as np
 
 from matcap.errors import MatcapError
 from scenes.lights import EnvironmentLight
-from scenes.synth_spec import (GENERATOR_VERSION, NUM_IMAGES, SPLITS, AssetCatalog, SceneSpec, generate_scene)
+from scenes.synth_spec import (
+    GENERATOR_VERSION,
+    NUM_IMAGES,
+    SPLITS,
+    AssetCatalog,
+    SceneSpec,
+    generate_scene,
+)
 
 MAX_ATTEMPTS = 6
 ENVMAP_HEIGHT = 256  # environment maps are resampled to at most 512 x 256

@@ -162,7 +162,7 @@ def render_scene(objects: list[RenderObject], basis: list[Light], envmaps: dict[
     """Render every basis light separately (environment maps at ``spp``, directional / point lights at half of it)
     plus the ground truth."""
     r = SceneRenderer(objects, resolution, spp, seed)
-    delta_spp = max(1, int(round(spp * DELTA_SPP_FACTOR)))
+    delta_spp = max(1, round(spp * DELTA_SPP_FACTOR))
     renders = np.stack([r.render([light], envmaps, spp=None if isinstance(light, EnvironmentLight) else delta_spp)
                         for light in basis])
     gt = r.ground_truth()

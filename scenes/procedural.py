@@ -20,7 +20,7 @@ class Geometry:
     normals: np.ndarray | None  # (V, 3) float32 or None
     uv: np.ndarray  # (V, 2) float32
 
-    def transformed(self, rotation: np.ndarray, scale: float, translation) -> "Geometry":
+    def transformed(self, rotation: np.ndarray, scale: float, translation) -> Geometry:
         r = np.asarray(rotation, np.float64).reshape(3, 3)
         v = (self.vertices.astype(np.float64) * float(scale)) @ r.T + np.asarray(translation, np.float64)
         n = None if self.normals is None else (self.normals.astype(np.float64) @ r.T)
@@ -286,7 +286,7 @@ def pattern(kind: str, seed: int, size: int, freq: float, angle: float) -> np.nd
     """One procedural pattern in [0, 1] from its descriptor."""
     rng = np.random.default_rng(seed)
     if kind == "noise":
-        return value_noise(rng, size, max(1, int(round(freq))))
+        return value_noise(rng, size, max(1, round(freq)))
     if kind == "stripes":
         return stripes(size, freq, angle, softness=rng.uniform(0.05, 0.6))
     if kind == "checkers":

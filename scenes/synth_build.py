@@ -170,7 +170,7 @@ def check_scene(images: np.ndarray, normal: np.ndarray, mask: np.ndarray, object
     pixels where the separately rendered ground-truth passes agree on the mask.
     """
     problems = []
-    h, w = mask.shape
+    _h, _w = mask.shape
     if not np.isfinite(images).all() or not np.isfinite(normal).all():
         problems.append("non-finite pixels")
         return problems

@@ -24,7 +24,13 @@ from typing import Any
 
 import numpy as np
 
-from scenes.lights import DirectionalLight, EnvironmentLight, PointLight, light_from_dict, light_to_dict
+from scenes.lights import (
+    DirectionalLight,
+    EnvironmentLight,
+    PointLight,
+    light_from_dict,
+    light_to_dict,
+)
 from scenes.procedural import PATTERNS, random_rotation
 
 GENERATOR_VERSION = "synth-1"
@@ -68,7 +74,7 @@ class AssetCatalog:
     envmaps: list[str] = field(default_factory=list)
     textures: list[str] = field(default_factory=list)
 
-    def for_split(self, split: str) -> "AssetCatalog":
+    def for_split(self, split: str) -> AssetCatalog:
         """Only the assets a split may use: held-out ones for test, the others for train."""
         test = split == "test"
 

@@ -122,7 +122,8 @@ def test_pad_and_crop_back_is_exact_where_not_resized(shape, native):
     if fr.size == fr.side:  # padded, not resized: exact
         assert np.array_equal(back, img)
     else:
-        assert np.abs(back - img).max() < 0.02  # smooth content survives the resize round trip
+        err = np.abs(back - img)  # smooth content survives the resize round trip; the outermost pixels see the padding
+        assert err[2:-2, 2:-2].max() < 0.02 and err.mean() < 0.01
 
 
 # ------------------------------------------------------------------------------------------ end to end

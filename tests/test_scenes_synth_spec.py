@@ -2,13 +2,20 @@
 import json
 
 import numpy as np
-import pytest
 
 from scenes import procedural as P
 from scenes.lights import DirectionalLight, PointLight
 from scenes.synth_build import build_render_objects, material_maps
-from scenes.synth_spec import (CONFIGS, HELD_OUT_ENVMAPS, NUM_IMAGES, TEST_GROUPS, AssetCatalog, generate_scene,
-                               is_held_out, scene_from_dict)
+from scenes.synth_spec import (
+    CONFIGS,
+    HELD_OUT_ENVMAPS,
+    NUM_IMAGES,
+    TEST_GROUPS,
+    AssetCatalog,
+    generate_scene,
+    is_held_out,
+    scene_from_dict,
+)
 
 CATALOG = AssetCatalog(
     meshes=["meshes/spot.ply", "meshes/armadillo.ply", "meshes/teapot.ply", "meshes/truck.ply", "meshes/lion.ply"],
@@ -127,7 +134,7 @@ def test_procedural_pieces():
 def test_material_maps_follow_ranges():
     s = generate_scene(11, "train", 5, 64, None)
     for o in s.objects:
-        base, rough, metal = material_maps(o.material, size=64)
+        _base, _rough, metal = material_maps(o.material, size=64)
         lo, hi = o.material.metallic
         assert lo - 1e-6 <= metal.min() and metal.max() <= hi + 1e-6
         if o.material.category != "metallic":

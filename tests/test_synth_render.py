@@ -4,10 +4,10 @@ import pytest
 
 pytest.importorskip("mitsuba")
 
-from renderers.synth import SceneRenderer, render_scene  # noqa: E402
-from scenes import procedural as P  # noqa: E402
-from scenes.lights import DirectionalLight, EnvironmentLight, PointLight  # noqa: E402
-from scenes.synth_build import RenderObject, check_scene, finalize_normals  # noqa: E402
+from renderers.synth import SceneRenderer, render_scene
+from scenes import procedural as P
+from scenes.lights import DirectionalLight, EnvironmentLight, PointLight
+from scenes.synth_build import RenderObject, check_scene, finalize_normals
 
 
 def _objects():
