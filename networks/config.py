@@ -13,7 +13,9 @@ Presets (``get_config(name, target)``):
     in sample sets of 10,000: paper 57.8 TFLOP, small 5.0 TFLOP, i.e. **11.5x fewer FLOPs per pixel** (encoder
     10.2x, per-pixel decoder 13.7x, regressor attention over the sample set 6.7x). In a training-like setting
     (256x256, K=10, 2048 supervised pixels) the forward pass is ~11x cheaper as well (0.66 vs 0.058 TFLOP).
-    Measured wall time: see ``benchmarks/bench_networks.py`` (numbers in the lead's report / README).
+    Measured wall time (512x512, K=16, 166,740 mask pixels, fp32, 2 threads on a shared 2-core machine at load
+    ~7, so pessimistic): small 130 s; paper at K=4 349 s (paper K=16 not measured here). Re-measure with
+    ``benchmarks/bench_networks.py`` on an idle machine.
     Definition: backbone depths (2, 2, 6, 2), dims (48, 96, 192, 384); light-axis attention blocks (0, 1, 1, 2);
     fusion 64 channels; glc_upsample 2 blocks 96 wide / feed-forward 192; glc_aggregation 2 blocks 128 wide /
     feed-forward 256, PMA feed-forward 256; regressor 1 block 128 wide / feed-forward 256 (heads 128 -> 64 -> k).

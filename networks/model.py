@@ -193,6 +193,9 @@ class ConvNeXt(nn.Module):
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         """x: (B, in_channels, G, G) -> [(B, dims[i], G/2^(i+2), G/2^(i+2)) for each stage i]."""
+        # channels_last memory: the per-pixel LayerNorm/Linear permutes become free views and the depthwise convs
+        # take oneDNN's fast NHWC path (same values; about 2x faster on CPU).
+        x = x.contiguous(memory_format=torch.channels_last)
         outs = []
         for i in range(self.num_stages):
             x = self.stages[i](self.downsample_layers[i](x))

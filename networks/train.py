@@ -27,7 +27,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from networks.config import get_config
+from networks.config import SDMUniPSConfig, get_config
 from networks.data import SceneCache, draw_batch, list_scenes, load_scene
 from networks.preprocess import normalize_images
 from networks.trainconfig import TrainConfig, add_arguments, config_from_args
@@ -176,6 +176,11 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
         if not ckpt_path.exists():
             raise ValueError(f"--resume: {ckpt_path} does not exist")
         ckpt = torch.load(ckpt_path, map_location=device, weights_only=True)
+        if "model_config" in ckpt:  # the run's own network shape, even if the preset changed since
+            config = SDMUniPSConfig.from_dict(ckpt["model_config"])
+            model = SDMUniPS(config).to(device)
+            opt = torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
+            sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, tc))
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         sched.load_state_dict(ckpt["scheduler"])
@@ -206,7 +211,8 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
     def save_checkpoint(step: int, wall: float) -> None:
         _save_atomic(
             {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-             "step": step, "best": best, "wall_s": wall, "train_config": _plain(dataclasses.asdict(tc))},
+             "step": step, "best": best, "wall_s": wall, "train_config": _plain(dataclasses.asdict(tc)),
+             "model_config": _plain(config.to_dict())},
             ckpt_path,
         )
 
