@@ -171,7 +171,6 @@ def load_networks(weights: Sequence[str | os.PathLike] | None, device: str = "cp
 
 def load_network(path: Path, device: str = "cpu") -> LoadedModel:
     """Load our safetensors weights or a published ``.pytmodel`` (never unpickled: ``weights_only=True``)."""
-    import torch
 
     from networks.checkpoint import import_published, load_model
     from networks.model import SDMUniPS
@@ -186,7 +185,6 @@ def load_network(path: Path, device: str = "cpu") -> LoadedModel:
     else:
         model, config, card = load_model(path, device=device)
     model.eval()
-    torch.set_grad_enabled(False)
     return LoadedModel(model, config, card or {}, str(path))
 
 
@@ -320,10 +318,11 @@ def estimate(
             pixel_samples=pixel_samples, seed=seed, progress=cb,
             autocast_dtype=torch.bfloat16 if bf16 else None,
         )
-        if fr.size > native:
-            out = predict_scalable(loaded.model, x, m, decoder_resolution=native, **kwargs)
-        else:
-            out = predict(loaded.model, x, m, **kwargs)
+        with torch.inference_mode():
+            if fr.size > native:
+                out = predict_scalable(loaded.model, x, m, decoder_resolution=native, **kwargs)
+            else:
+                out = predict(loaded.model, x, m, **kwargs)
         if target == "normal":
             n = _from_square(out["normal"], fr, shape)
             length = np.linalg.norm(n, axis=2, keepdims=True)
