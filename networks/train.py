@@ -155,7 +155,7 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
 
     torch.manual_seed(tc.seed)
     config = get_config(tc.preset, tc.target)
-    overrides = {}
+    overrides = {"pixel_samples": tc.sample.pixel_samples}  # inference uses the sample-set size it was trained with
     if tc.canonical_resolution:
         overrides["canonical_resolution"] = tc.canonical_resolution
     if tc.dropout >= 0:

@@ -54,10 +54,6 @@ def run(args) -> int:
 
         if not torch.cuda.is_available():
             raise MatcapError(f"--device {args.device}: CUDA is not available in this torch build")
-    if args.export:
-        from matcap.results import check_output_dir
-
-        check_output_dir(args.export, args.overwrite)
     maps, out = capture(
         photos, out, mask=args.mask, linear=args.linear, overwrite=args.overwrite,
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
@@ -78,6 +74,6 @@ def run(args) -> int:
     if args.export:
         from matcap.export import export
 
-        export(maps, args.export, preset=args.preset, overwrite=args.overwrite)
+        export(maps, args.export, name=out.name, preset=args.preset, overwrite=args.overwrite)
         print(f"texture set in {args.export}/")
     return 0
