@@ -174,3 +174,24 @@ def test_no_default_model_message(monkeypatch, tmp_path):
                                                  "brdf": tmp_path / "none2.safetensors"})
     with pytest.raises(cap.MatcapError, match="no trained default model is installed.*matcap weights import"):
         cap.resolve_weights(None)
+
+
+def test_capture_relight_and_export_in_one_go(tiny_weights, tmp_path):
+    from matcap.relight import default_envmap_path
+
+    folder = sphere_capture(tmp_path / "photos")
+    out, tex = tmp_path / "result", tmp_path / "textures"
+    r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet",
+                "--relight", str(default_envmap_path()), "--point", "0,0,3", "--spp", "4", "--export", str(tex))
+    assert r.returncode == 0, r.stderr
+    relit = imageio.read_exr(out / f"relight_{default_envmap_path().stem}.exr")
+    assert relit.shape == (40, 56, 3) and np.isfinite(relit).all() and relit.max() > 0
+    assert (out / "relight_point_0_0_3.png").exists()
+    assert (tex / "result.glb").exists() and (tex / "result_normal.png").exists()
+    exported = imageio.read_image(tex / "result_normal.png").pixels / 65535.0
+    mask = imageio.read_image(out / "mask.png").pixels[..., 0] > 0
+    normal = imageio.read_exr(out / "normal.exr")
+    from matcap.export import camera_to_tangent
+
+    expected = (camera_to_tangent(normal, mask) + 1) / 2  # the export of exactly the maps capture wrote
+    assert np.abs(exported[mask] - expected[mask]).max() < 1e-4
