@@ -33,8 +33,9 @@ def list_scenes(root: str | Path) -> list[Path]:
         except json.JSONDecodeError:
             names = []
     scenes = [root / n for n in names if (root / n / "data.npz").exists()]
-    if not scenes:
-        scenes = sorted(p.parent for p in root.glob("*/data.npz"))
+    # scenes finished after the manifest was last written (e.g. a generator still running) come after it, sorted
+    listed = set(scenes)
+    scenes += sorted(p.parent for p in root.glob("*/data.npz") if p.parent not in listed)
     if not scenes:
         raise ValueError(f"{root}: no scenes with data.npz (make some with `matcap synth --out {root}`)")
     return scenes
