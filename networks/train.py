@@ -72,7 +72,8 @@ def to_torch(batch: dict[str, np.ndarray], device) -> dict[str, torch.Tensor]:
 
 @torch.no_grad()
 def validate(model, scenes: list[Path], target: str, device, max_scenes: int, seed: int = 0) -> dict:
-    """Mean angular error (degrees) per lighting group, and BRDF RMSEs, on the first ``max_scenes`` scenes.
+    """Mean angular error (degrees) per lighting group, and BRDF RMSEs (pooled over pixels, with the RMSE of the
+    best constant prediction beside them), on the first ``max_scenes`` scenes.
 
     Each scene is predicted with its 10 stored images and its ground-truth mask, every pixel.
     """
@@ -81,7 +82,9 @@ def validate(model, scenes: list[Path], target: str, device, max_scenes: int, se
     was_training = model.training
     model.eval()
     groups: dict[str, list[float]] = {}
-    sq: dict[str, list[float]] = {"base_color": [], "roughness": [], "metallic": []}
+    keys = ("base_color", "roughness", "metallic")
+    sse = dict.fromkeys(keys, 0.0)  # pooled over every valid pixel (and channel) of every scene
+    s1, s2, count = dict.fromkeys(keys, 0.0), dict.fromkeys(keys, 0.0), dict.fromkeys(keys, 0)
     for path in scenes[:max_scenes]:
         scene = load_scene(path)
         try:
@@ -100,17 +103,23 @@ def validate(model, scenes: list[Path], target: str, device, max_scenes: int, se
         err = np.degrees(np.arccos(np.clip((n * g).sum(1) / np.maximum(np.linalg.norm(n, axis=1), 1e-8), -1, 1)))
         groups.setdefault(group, []).append(float(err.mean()))
         if target == "brdf":
-            for key in sq:
-                diff = out[key][valid] - scene[key].astype(np.float32)[valid]
-                sq[key].append(float(np.mean(diff**2)))
+            for key in keys:
+                truth = scene[key].astype(np.float64)[valid]
+                sse[key] += float(((out[key][valid] - truth) ** 2).sum())
+                s1[key] += float(truth.sum())
+                s2[key] += float((truth**2).sum())
+                count[key] += truth.size
     if was_training:
         model.train()
     result = {f"mae_{g}": float(np.mean(v)) for g, v in sorted(groups.items())}
     result["mae"] = float(np.mean([e for v in groups.values() for e in v])) if groups else float("nan")
     if target == "brdf":
-        for key, v in sq.items():
-            result[f"rmse_{key}"] = float(math.sqrt(np.mean(v))) if v else float("nan")
-        result["rmse_mean"] = float(np.mean([result[f"rmse_{k}"] for k in sq]))
+        for key in keys:
+            n = max(count[key], 1)
+            result[f"rmse_{key}"] = math.sqrt(sse[key] / n)
+            # the best constant prediction (the mean) has an RMSE equal to the standard deviation of the truth
+            result[f"rmse_const_{key}"] = math.sqrt(max(s2[key] / n - (s1[key] / n) ** 2, 0.0))
+        result["rmse_mean"] = float(np.mean([result[f"rmse_{k}"] for k in keys]))
     return result
 
 

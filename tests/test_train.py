@@ -110,3 +110,15 @@ def test_ddp_two_processes_hold_identical_weights(tiny_dataset, tmp_path):
     torch.manual_seed(0)
     fresh = SDMUniPS(get_config("tiny", "normal")).state_dict()
     assert any(not torch.equal(fresh[k], a[k]) for k in a)
+
+
+def test_brdf_validation_reports_rmse_and_constant_baseline(tiny_dataset, tiny_val_dataset, tmp_path):
+    from networks.train import train
+
+    result = train(_tc(tiny_dataset, tmp_path, steps=2, target="brdf", val_data=str(tiny_val_dataset)), progress=False)
+    val = result["validation"]
+    for key in ("base_color", "roughness", "metallic"):
+        assert val[f"rmse_{key}"] >= 0 and val[f"rmse_const_{key}"] >= 0
+    # the numpy scenes have roughness 1 and metallic 0 everywhere: the constant baseline is exact there
+    assert val["rmse_const_roughness"] < 1e-3 and val["rmse_const_metallic"] < 1e-3
+    assert val["rmse_const_base_color"] > 0.01
