@@ -84,6 +84,8 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"
 
     config, card = read_metadata(path)
     state = load_file(str(path), device="cpu")
+    # shipped weights may be stored as float16: the model always computes in float32 (or under autocast)
+    state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
     with torch.device("meta"):
         expected = SDMUniPS(config).state_dict()
     missing = [k for k in expected if k not in state]

@@ -1,0 +1,52 @@
+"""`matcap models`: install trained weights as float16 with a model card, list them, load them for capture."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import torch
+
+from matcap.models import install, installed_models
+
+
+def test_install_fp16_lists_and_loads(tmp_path):
+    from networks.checkpoint import load_model, save_weights
+    from networks.config import get_config
+    from networks.model import SDMUniPS
+
+    torch.manual_seed(0)
+    cfg = get_config("tiny", "normal")
+    model = SDMUniPS(cfg).eval()
+    src = save_weights(tmp_path / "best.safetensors", model, cfg,
+                       {"steps": 12, "validation": {"mae": 21.5}, "train_config": {"lr": 4e-4}})
+    folder = tmp_path / "weights"
+    folder.mkdir()
+    dst = install(src, "normal_tiny", fp16=True, notes="## Notes\ntrained in a test", folder=folder)
+    assert dst.stat().st_size < 0.6 * src.stat().st_size  # float16 storage
+    card = dst.with_suffix(".md").read_text()
+    assert "| steps | 12 |" in card and "| mae | 21.500 |" in card and "trained in a test" in card
+    [entry] = installed_models(folder)
+    assert entry["target"] == "normal" and entry["card"]["stored_dtype"] == "float16"
+    loaded, _, _ = load_model(dst)
+    x = torch.rand(1, 3, 3, 64, 64)
+    m = torch.ones(1, 1, 64, 64)
+    idx = torch.arange(100).view(1, 100)
+    with torch.no_grad():
+        a = model(x, m, idx)["normal"]
+        b = loaded(x, m, idx)["normal"]
+    deg = torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1, 1)))
+    assert float(deg.max()) < 0.5  # fp16 storage does not hurt
+    try:
+        install(src, "normal_tiny", folder=folder)
+    except Exception as exc:
+        assert "exists" in str(exc)
+    else:
+        raise AssertionError("install overwrote without --overwrite")
+
+
+def test_models_cli_lists_the_bundled_models():
+    r = subprocess.run([sys.executable, "-m", "matcap", "models"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "normal" in r.stdout
+    assert np is not None
