@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import shlex
 
-METHOD_NAMES = ("least-squares", "least-squares-robust", "sdm-unips")  # keep in step with runner.METHODS
+METHOD_NAMES = ("least-squares", "least-squares-robust", "sdm-unips", "flat")  # keep in step with runner.METHODS
 
 
 def _positive(text: str) -> int:

@@ -81,9 +81,17 @@ def _run_sdm_unips(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext
     return np.asarray(maps.normal, dtype=np.float32)
 
 
+def _run_flat(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext) -> np.ndarray:
+    """Every pixel faces the camera: the score any method has to beat."""
+    normal = np.zeros(obj.mask.shape + (3,), np.float32)
+    normal[..., 2] = 1.0
+    return normal
+
+
 METHODS: dict[str, Method] = {
     m.name: m
     for m in (
+        Method("flat", False, 1, "constant (0, 0, 1): every pixel faces the camera (the trivial anchor)", _run_flat),
         Method("least-squares", True, 3, "Lambertian least squares over all images (Woodham 1980)",
                _run_least_squares),
         Method("least-squares-robust", True, 3,
