@@ -4,7 +4,6 @@ from __future__ import annotations
 import subprocess
 import sys
 
-import numpy as np
 import torch
 
 from matcap.models import install, installed_models
@@ -49,4 +48,3 @@ def test_models_cli_lists_the_bundled_models():
     r = subprocess.run([sys.executable, "-m", "matcap", "models"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "normal" in r.stdout
-    assert np is not None

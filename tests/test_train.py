@@ -47,9 +47,9 @@ def test_draw_batch_is_a_pure_function_of_the_step(tiny_dataset):
 
 
 def test_loss_decreases(tiny_dataset, tmp_path):
-    from networks.train import train
-
     import json
+
+    from networks.train import train
 
     train(_tc(tiny_dataset, tmp_path, steps=40, lr=3e-3), progress=False)
     losses = [json.loads(line)["loss"] for line in (tmp_path / "log.jsonl").read_text().splitlines()
