@@ -30,6 +30,23 @@ OUTPUT_KEYS = {"normal": ("normal",), "brdf": ("normal", "base_color", "roughnes
 
 
 # ----------------------------------------------------------------------------------------------------- attention
+#: Key sequences up to this length use an explicit softmax(QK^T)V: for the short light-axis sequences (a handful of
+#: images per pixel, but thousands of pixels) it is ~3x faster on CPU than PyTorch's fused kernel in bfloat16 and
+#: ~1.4x in float32 (fwd+bwd, `(1536, 8, 4, 12)`); long sequences (the regressor's pixel sets) keep the fused kernel.
+SHORT_SEQUENCE = 64
+
+
+def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, scale: float, dropout: float = 0.0,
+              training: bool = False) -> torch.Tensor:
+    """Softmax attention. q: (B, h, Lq, d); k, v: (B, h, Lk, d) -> (B, h, Lq, d)."""
+    if k.shape[-2] > SHORT_SEQUENCE:
+        return F.scaled_dot_product_attention(q, k, v, dropout_p=dropout if training else 0.0, scale=scale)
+    w = torch.softmax((q @ k.transpose(-1, -2)) * scale, dim=-1)
+    if training and dropout > 0:
+        w = F.dropout(w, dropout)
+    return w @ v
+
+
 class MAB(nn.Module):
     """Multi-head attention block as published (all linears without bias).
 
@@ -72,7 +89,7 @@ class MAB(nn.Module):
         qh = q.view(b, lq, h, d // h).transpose(1, 2)
         kh = k.view(b, lk, h, d // h).transpose(1, 2)
         vh = v.view(b, lk, h, d // h).transpose(1, 2)
-        a = F.scaled_dot_product_attention(qh, kh, vh, dropout_p=p, scale=self.scale)
+        a = attention(qh, kh, vh, self.scale, p, self.training)
         o = q + a.transpose(1, 2).reshape(b, lq, d)
         o_ = self.ln1(o) if self.ln1 is not None else o
         hidden = F.dropout(F.gelu(self.fc_o1(o_)), p, self.training)
