@@ -265,18 +265,21 @@ def estimate(
     device: str = "cpu",
     pixel_samples: int | None = None,
     bf16: bool = False,
+    views: int = 1,
     progress: bool | Callable[[str, int, int], None] = False,
     models: dict[str, LoadedModel] | None = None,
 ) -> MaterialMaps:
     """Recover SVBRDF maps from photos of one scene under different lights.
 
     images: sequence of (H, W, 3) float32 linear RGB (at least 2); mask: (H, W) bool or None (whole image).
+    ``views`` (1, 2, 4 or 8) averages the networks' predictions over that many mirrored / transposed copies of the
+    input (test-time augmentation, ``networks.inference.predict_views``; costs ``views`` times the time).
     Returns :class:`MaterialMaps` at (H, W); BRDF maps only when a BRDF model is available. ``meta`` records the
     model, settings and timings.
     """
     import torch
 
-    from networks.inference import predict, predict_scalable
+    from networks.inference import predict, predict_scalable, predict_views
     from networks.preprocess import normalize_images
 
     if len(images) < 2:
@@ -318,11 +321,14 @@ def estimate(
             pixel_samples=pixel_samples, seed=seed, progress=cb,
             autocast_dtype=torch.bfloat16 if bf16 else None,
         )
+        if fr.size > native:
+            def run(xv, mv, _model=loaded.model, _native=native, **kw):
+                return predict_scalable(_model, xv, mv, decoder_resolution=_native, **kw)
+        else:
+            def run(xv, mv, _model=loaded.model, **kw):
+                return predict(_model, xv, mv, **kw)
         with torch.inference_mode():
-            if fr.size > native:
-                out = predict_scalable(loaded.model, x, m, decoder_resolution=native, **kwargs)
-            else:
-                out = predict(loaded.model, x, m, **kwargs)
+            out = predict_views(run, x, m, views=views, **kwargs)
         if target == "normal":
             n = _from_square(out["normal"], fr, shape)
             length = np.linalg.norm(n, axis=2, keepdims=True)
@@ -343,7 +349,7 @@ def estimate(
             results[key] = np.where(mask_out[..., None] if v.ndim == 3 else mask_out, v, 0.0).astype(np.float32)
     meta = {
         "images_used": [int(i) for i in order],
-        "seed": seed, "device": device, "bf16": bf16, "pixel_samples": pixel_samples,
+        "seed": seed, "device": device, "bf16": bf16, "views": views, "pixel_samples": pixel_samples,
         "models": settings, "timings": timings,
     }
     return MaterialMaps(

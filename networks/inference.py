@@ -146,3 +146,83 @@ def predict_scalable(model: SDMUniPS, images: torch.Tensor, mask: torch.Tensor, 
             for k, v in res.items():
                 out[k][a::s, b::s] = v
     return out
+
+
+# ------------------------------------------------------------------------------------ test-time augmentation
+#: The 8 symmetries of the square image plane as (transpose, flip_columns, flip_rows), applied in that order.
+#: ``views=k`` uses the first k: 1 = identity, 2 = + left-right mirror, 4 = + up-down mirrors, 8 = + transposes.
+DIHEDRAL = (
+    (False, False, False), (False, True, False), (False, False, True), (False, True, True),
+    (True, False, False), (True, True, False), (True, False, True), (True, True, True),
+)
+
+
+def _transform_images(x: torch.Tensor, t: tuple[bool, bool, bool]) -> torch.Tensor:
+    """Apply transform ``t`` to the last two (row, column) axes of a tensor."""
+    transpose, flip_c, flip_r = t
+    if transpose:
+        x = x.transpose(-1, -2)
+    if flip_c:
+        x = x.flip(-1)
+    if flip_r:
+        x = x.flip(-2)
+    return x.contiguous()
+
+
+def _untransform_map(a: np.ndarray, t: tuple[bool, bool, bool], normal: bool) -> np.ndarray:
+    """Bring a predicted (S, S[, C]) map made in the frame of transform ``t`` back to the original frame.
+
+    Normals are in camera coordinates (x right = columns, y up = -rows, z towards the camera): mirroring the
+    columns negates x, mirroring the rows negates y, and transposing maps (x, y) to (-y, -x)."""
+    transpose, flip_c, flip_r = t
+    a = a.copy()
+    if flip_r:
+        a = a[::-1]
+        if normal:
+            a[..., 1] *= -1
+    if flip_c:
+        a = a[:, ::-1]
+        if normal:
+            a[..., 0] *= -1
+    if transpose:
+        a = a.swapaxes(0, 1)
+        if normal:
+            a = a[..., [1, 0, 2]] * np.array([-1.0, -1.0, 1.0], np.float32)
+    return np.ascontiguousarray(a)
+
+
+def predict_views(predict_fn: Callable[..., dict[str, np.ndarray]], images: torch.Tensor, mask: torch.Tensor,
+                  views: int = 1, **kwargs) -> dict[str, np.ndarray]:
+    """Test-time augmentation: run ``predict_fn`` (:func:`predict` or :func:`predict_scalable`) on ``views``
+    mirrored / transposed copies of the input (:data:`DIHEDRAL`) and average the results in the original frame.
+
+    images: (N, 3, S, S); mask: (S, S). Normals are summed and re-normalised; BRDF maps are averaged. ``views=1``
+    is exactly ``predict_fn(images, mask, **kwargs)``. Cost: ``views`` times one prediction. A ``progress``
+    callback in ``kwargs`` sees the pixel counts of all views one after another.
+    """
+    if views not in (1, 2, 4, 8):
+        raise ValueError(f"views must be 1, 2, 4 or 8, got {views}")
+    if views == 1:
+        return predict_fn(images, mask, **kwargs)
+    progress = kwargs.pop("progress", None)
+    total = int(mask.bool().sum()) * views
+    acc: dict[str, np.ndarray] | None = None
+    for i, t in enumerate(DIHEDRAL[:views]):
+        cb = None
+        if progress is not None:
+            cb = (lambda done, _tot, _off=i * total // views: progress(_off + done, total))
+        res = predict_fn(_transform_images(images, t), _transform_images(mask, t), progress=cb, **kwargs)
+        res = {k: _untransform_map(v, t, normal=(k == "normal")) for k, v in res.items()}
+        if acc is None:
+            acc = res
+        else:
+            for k in acc:
+                acc[k] = acc[k] + res[k]
+    assert acc is not None
+    n = acc["normal"]
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    acc["normal"] = np.where(length > 1e-6, n / np.maximum(length, 1e-12), 0.0).astype(np.float32)
+    for k in acc:
+        if k != "normal":
+            acc[k] = (acc[k] / views).astype(np.float32)
+    return acc

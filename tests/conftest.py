@@ -22,6 +22,29 @@ def shared_path(*parts: str) -> Path:
     return p
 
 
+def _sphere_maps(size: int = 24, varied: bool = False):
+    """MaterialMaps of a sphere of radius 0.9 (image half-widths) centred in a size x size image.
+
+    ``varied``: base color ramps across the image and the right half is metallic (roughness 0.35); otherwise
+    uniform grey base color 0.5, roughness 0.4, metallic 0.
+    """
+    from scenes.materialmaps import MaterialMaps
+
+    yy, xx = np.mgrid[0:size, 0:size]
+    x = (xx + 0.5) / size * 2 - 1
+    y = 1 - (yy + 0.5) / size * 2
+    mask = x**2 + y**2 < 0.81
+    z = np.sqrt(np.clip(0.81 - x**2 - y**2, 0, None))
+    n = np.stack([x, y, z], 2) / 0.9
+    n[~mask] = 0
+    if not varied:
+        return MaterialMaps(normal=n, mask=mask, base_color=np.full((size, size, 3), 0.5),
+                            roughness=np.full((size, size), 0.4), metallic=np.zeros((size, size)))
+    base = np.stack([0.2 + 0.6 * (xx / size), np.full(xx.shape, 0.4), 0.8 - 0.6 * (yy / size)], 2)
+    return MaterialMaps(normal=n, mask=mask, base_color=base, roughness=np.full((size, size), 0.35),
+                        metallic=(xx > size // 2).astype(np.float32), meta={"source": "test sphere"})
+
+
 def lambertian_scene(rng: np.random.Generator, size: int) -> dict[str, np.ndarray]:
     """A sphere (random centre/radius/albedo) on a background plane, rendered Lambertian in numpy.
 
@@ -88,3 +111,9 @@ def tiny_dataset(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_val_dataset(tmp_path_factory) -> Path:
     return make_dataset(tmp_path_factory.mktemp("tinyval"), 2, 64, seed=2, groups=("directional", "environment"))
+
+
+@pytest.fixture(scope="session")
+def sphere_maps():
+    """Factory ``sphere_maps(size=24, varied=False) -> MaterialMaps`` of a centred sphere (see ``_sphere_maps``)."""
+    return _sphere_maps

@@ -195,3 +195,24 @@ def test_capture_relight_and_export_in_one_go(tiny_weights, tmp_path):
 
     expected = (camera_to_tangent(normal, mask) + 1) / 2  # the export of exactly the maps capture wrote
     assert np.abs(exported[mask] - expected[mask]).max() < 1e-4
+
+
+def test_views_average_mirrored_predictions_and_are_recorded(tiny_weights, tmp_path):
+    """--views 2 differs from one view, keeps unit normals and BRDF maps in range, and lands in capture.json."""
+    from matcap.capture import estimate
+
+    images = [np.random.default_rng(i).uniform(0.05, 1, (40, 56, 3)).astype(np.float32) for i in range(3)]
+    one = estimate(images, None, weights=[tiny_weights], seed=1)
+    two = estimate(images, None, weights=[tiny_weights], seed=1, views=2)
+    inside = two.mask
+    assert np.allclose(np.linalg.norm(two.normal[inside], axis=-1), 1.0, atol=1e-5)
+    assert np.degrees(np.arccos(np.clip((one.normal * two.normal).sum(-1)[inside], -1, 1))).mean() > 0.01
+    assert 0.0 <= two.roughness.min() and two.roughness.max() <= 1.0
+    assert two.meta["views"] == 2
+    folder = sphere_capture(tmp_path / "photos")
+    r = run_cli("capture", str(folder), "--out", str(tmp_path / "out"), "--weights", str(tiny_weights), "--quiet",
+                "--views", "4")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "out" / "capture.json").read_text())["views"] == 4
+    bad = run_cli("capture", str(folder), "--out", str(tmp_path / "out3"), "--weights", str(tiny_weights), "--views", "3")
+    assert bad.returncode == 2 and "invalid choice" in bad.stderr

@@ -12,27 +12,13 @@ import pytest
 pytest.importorskip("mitsuba")
 
 from matcap.cli import main  # noqa: E402
-from scenes.materialmaps import MaterialMaps  # noqa: E402
 
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                   "--disable-component-update", "--disable-sync", "--no-first-run"]
 
 
-def sphere_maps(size=40) -> MaterialMaps:
-    yy, xx = np.mgrid[0:size, 0:size]
-    x = (xx + 0.5) / size * 2 - 1
-    y = 1 - (yy + 0.5) / size * 2
-    mask = x**2 + y**2 < 0.81
-    z = np.sqrt(np.clip(0.81 - x**2 - y**2, 0, None))
-    n = np.stack([x, y, z], 2) / 0.9
-    n[~mask] = 0
-    base = np.stack([0.2 + 0.6 * (xx / size), np.full(xx.shape, 0.4), 0.8 - 0.6 * (yy / size)], 2)
-    return MaterialMaps(normal=n, mask=mask, base_color=base, roughness=np.full((size, size), 0.35),
-                        metallic=(xx > size // 2).astype(np.float32), meta={"source": "test sphere"})
-
-
 @pytest.fixture(scope="module")
-def built(tmp_path_factory):
+def built(tmp_path_factory, sphere_maps):
     import cv2
 
     from matcap import gallery
@@ -48,7 +34,7 @@ def built(tmp_path_factory):
 
     shutil.copy(default_envmap_path(), envdir / "studio.exr")
     out = root / "g"
-    info = gallery(sphere_maps(), envs=envdir, orbit=6, out=out, size=32, spp=2, orbit_spp=1, progress=False)
+    info = gallery(sphere_maps(40, varied=True), envs=envdir, orbit=6, out=out, size=32, spp=2, orbit_spp=1, progress=False)
     return out, info
 
 

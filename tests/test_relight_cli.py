@@ -8,19 +8,6 @@ pytest.importorskip("mitsuba")
 
 from matcap.cli import main  # noqa: E402
 from matcap.imageio import read_exr, read_image, write_png  # noqa: E402
-from scenes.materialmaps import MaterialMaps  # noqa: E402
-
-
-def sphere_maps(size=24) -> MaterialMaps:
-    yy, xx = np.mgrid[0:size, 0:size]
-    x = (xx + 0.5) / size * 2 - 1
-    y = 1 - (yy + 0.5) / size * 2
-    mask = x**2 + y**2 < 0.81
-    z = np.sqrt(np.clip(0.81 - x**2 - y**2, 0, None))
-    n = np.stack([x, y, z], 2) / 0.9
-    n[~mask] = 0
-    return MaterialMaps(normal=n, mask=mask, base_color=np.full((size, size, 3), 0.5),
-                        roughness=np.full((size, size), 0.4), metallic=np.zeros((size, size)))
 
 
 @pytest.fixture()
@@ -54,7 +41,7 @@ def test_maps_from_texture_set(texture_set):
     assert small.shape == (8, 12)
 
 
-def test_relight_library_writes_exr_and_png(tmp_path):
+def test_relight_library_writes_exr_and_png(tmp_path, sphere_maps):
     from matcap import relight
 
     maps = sphere_maps()
@@ -76,7 +63,7 @@ def test_relight_library_writes_exr_and_png(tmp_path):
         relight(maps, spp=1, out=tmp_path)
 
 
-def test_relight_point_light_names_and_size(tmp_path):
+def test_relight_point_light_names_and_size(tmp_path, sphere_maps):
     from matcap.relight import relight
 
     maps = sphere_maps()
@@ -88,7 +75,7 @@ def test_relight_point_light_names_and_size(tmp_path):
     assert abs(imgs[0][5:7, 5:7].mean() / 0.5 - 1) < 0.06
 
 
-def test_cli_relight_result_folder(tmp_path, capsys):
+def test_cli_relight_result_folder(tmp_path, capsys, sphere_maps):
     from matcap.results import write_result
 
     maps = sphere_maps()

@@ -31,6 +31,9 @@ def register(sub) -> None:
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu, cuda, cuda:1 (default cpu)")
     p.add_argument("--pixel-samples", type=int, help="pixels per sample set (default: the model's)")
     p.add_argument("--bf16", action="store_true", help="run the networks under bfloat16 autocast (faster on CPU)")
+    p.add_argument("--views", type=int, choices=(1, 2, 4, 8), default=1,
+                   help="average the prediction over this many mirrored/transposed copies of the input "
+                        "(test-time augmentation; costs that many times the time; default 1)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
     p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")
@@ -57,7 +60,7 @@ def run(args) -> int:
     maps, out = capture(
         photos, out, mask=args.mask, linear=args.linear, overwrite=args.overwrite,
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
-        pixel_samples=args.pixel_samples, bf16=args.bf16, progress=not args.quiet,
+        pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
     )
     t = maps.meta["timings"]
     print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "

@@ -40,6 +40,8 @@ def register(sub) -> None:
     p.add_argument("--weights", action="append", metavar="FILE_OR_DIR",
                    help="network weights for sdm-unips (repeatable; default: the bundled model)")
     p.add_argument("--device", default="cpu", help="torch device for sdm-unips (default cpu)")
+    p.add_argument("--views", type=int, choices=(1, 2, 4, 8), default=1,
+                   help="sdm-unips: test-time augmentation views, as in `matcap capture --views` (default 1)")
     p.add_argument("--out", metavar="DIR",
                    help="write results.md, results.json and error_maps/<object>.png (0-90 deg) here")
     p.add_argument("--json", metavar="FILE", help="also write the JSON report to FILE (atomically)")
@@ -85,7 +87,8 @@ def run(args) -> int:
     report = runner.evaluate(
         args.dataset, args.method, args.reference, objects=objects, max_images=args.max_images,
         trials=args.trials, seed=args.seed, weights=args.weights, device=args.device,
-        error_map_dir=(out / "error_maps") if out else None, split=args.split, command=command_line(args),
+        views=args.views, error_map_dir=(out / "error_maps") if out else None, split=args.split,
+        command=command_line(args),
         log=None if args.quiet else runner.stderr_log,
     )
     md = runner.to_markdown(report)

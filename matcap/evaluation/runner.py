@@ -41,6 +41,7 @@ class MethodContext:
 
     weights: list[str] | None = None
     device: str = "cpu"
+    views: int = 1  # test-time augmentation of the network (capture.estimate(views=...))
     state: dict[str, Any] | None = None  # lazily loaded things (networks), kept across objects
 
 
@@ -77,7 +78,7 @@ def _run_sdm_unips(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext
             state["load_s"] = time.perf_counter() - t0
         kwargs["models"] = state["models"]
     maps = capture.estimate(obj.network_images(idx), obj.mask, weights=ctx.weights, max_images=None, seed=seed,
-                            device=ctx.device, progress=False, **kwargs)
+                            device=ctx.device, views=ctx.views, progress=False, **kwargs)
     return np.asarray(maps.normal, dtype=np.float32)
 
 
@@ -217,7 +218,8 @@ def summarize_groups(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 def evaluate(dataset: str | Path, method: str = "least-squares", reference: str | None = None, *,
              objects: list[str] | None = None, max_images: int | None = None, trials: int = 10, seed: int = 0,
-             weights: list[str] | None = None, device: str = "cpu", error_map_dir: str | Path | None = None,
+             weights: list[str] | None = None, device: str = "cpu", views: int = 1,
+             error_map_dir: str | Path | None = None,
              split: str | None = "test", command: str | None = None,
              log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Evaluate ``method`` on every object under ``dataset``; returns the report (see :func:`to_markdown`)."""
@@ -236,7 +238,7 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
         if missing:
             raise MatcapError(f"unknown object(s) {', '.join(missing)}; found: {', '.join(sorted(names))}")
         sources = [s for s in sources if s.name in set(objects)]
-    ctx = MethodContext(weights=weights, device=device, state={})
+    ctx = MethodContext(weights=weights, device=device, views=views, state={})
     rows = []
     t_start = time.perf_counter()
     for i, src in enumerate(sources):
@@ -257,7 +259,7 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
         "method_description": m.description,
         "against": ref.name if ref else "ground truth",
         "protocol": {
-            "max_images": max_images, "trials": trials, "seed": seed,
+            "max_images": max_images, "trials": trials, "seed": seed, "views": views,
             "subset_rng": "numpy.random.default_rng([seed, trial, K, crc32(object)])",
             "reference_uses": "all images" if ref else None,
         },
