@@ -122,3 +122,15 @@ def test_brdf_validation_reports_rmse_and_constant_baseline(tiny_dataset, tiny_v
     # the numpy scenes have roughness 1 and metallic 0 everywhere: the constant baseline is exact there
     assert val["rmse_const_roughness"] < 1e-3 and val["rmse_const_metallic"] < 1e-3
     assert val["rmse_const_base_color"] > 0.01
+    # the stand-alone scorer gives the same numbers from the saved weights, plus the gain over the constant
+    from networks.validate import main as validate_main
+
+    out = tmp_path / "score.json"
+    assert validate_main([str(tmp_path / "last.safetensors"), str(tiny_val_dataset), "--json", str(out)]) == 0
+    import json
+
+    scored = json.loads(out.read_text())
+    assert scored["target"] == "brdf" and scored["scenes"] == len(list_scenes(tiny_val_dataset))
+    assert abs(scored["rmse_base_color"] - val["rmse_base_color"]) < 1e-6
+    assert scored["gain_base_color"] == pytest.approx(1 - val["rmse_base_color"] / val["rmse_const_base_color"])
+    assert validate_main([str(tmp_path / "missing.safetensors"), str(tiny_val_dataset)]) == 2

@@ -1,0 +1,64 @@
+"""Score trained weights on a synthetic split, exactly as training validation does.
+
+    python -m networks.validate WEIGHTS.safetensors DATA_TEST [--scenes N] [--json FILE]
+
+Prints one JSON object: mean angular error (degrees) per lighting group and over all scenes, and for a BRDF network
+the RMSE of base color, roughness and metallic next to the RMSE of the best constant prediction
+(``rmse_const_*``, the standard deviation of the truth) and the relative improvement over it (``gain_*``, the
+issue-4 target is >= 0.30 for each map). Every scene is predicted with its stored images and ground-truth mask.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+
+def score(weights: str | Path, data: str | Path, scenes: int | None = None, device: str = "cpu") -> dict:
+    """Validation numbers of ``weights`` on the first ``scenes`` scenes of ``data`` (all when None)."""
+    import torch
+
+    from networks.checkpoint import load_model
+    from networks.data import list_scenes
+    from networks.train import validate
+
+    model, config, _ = load_model(weights, device=device)
+    found = list_scenes(data)
+    count = len(found) if scenes is None else min(scenes, len(found))
+    with torch.inference_mode():
+        result = validate(model, found, config.target, torch.device(device), count)
+    result = {"weights": str(weights), "target": config.target, "scenes": count, **result}
+    if config.target == "brdf":
+        for key in ("base_color", "roughness", "metallic"):
+            const = result[f"rmse_const_{key}"]
+            result[f"gain_{key}"] = 1.0 - result[f"rmse_{key}"] / const if const > 0 else float("nan")
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m networks.validate", description=__doc__.split("\n\n")[0])
+    p.add_argument("weights", help="our .safetensors weights (normal or BRDF network)")
+    p.add_argument("data", help="a `matcap synth` dataset folder (the test split)")
+    p.add_argument("--scenes", type=int, help="use the first N scenes (default: all)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--json", metavar="FILE", help="also write the result to FILE")
+    args = p.parse_args(argv)
+    try:
+        result = score(args.weights, args.data, args.scenes, args.device)
+    except (ValueError, OSError) as exc:
+        print(f"networks.validate: error: {exc}", file=sys.stderr)
+        return 2
+    text = json.dumps(result, indent=1)
+    if args.json:  # atomically: a reader never sees half a file
+        out = Path(args.json)
+        tmp = out.with_name(f".{out.name}.tmp")
+        tmp.write_text(text + "\n")
+        os.replace(tmp, out)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
