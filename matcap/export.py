@@ -46,7 +46,8 @@ class Texture:
     """One PNG: ``channels`` names the source of each channel (1, 3 or 4 channels).
 
     Sources: ``base_color.r|g|b`` (sRGB-encoded), ``normal_gl.x|y|z`` / ``normal_dx.x|y|z`` ((n + 1) / 2),
-    ``roughness``, ``smoothness`` (1 - roughness), ``metallic``, ``occlusion`` (1: not captured), ``mask``,
+    ``roughness``, ``smoothness`` (1 - roughness), ``metallic``, ``occlusion`` (baked from the height map, or 1),
+    ``mask``,
     ``0``, ``1``.
     """
 
@@ -79,8 +80,11 @@ TEXTURES: dict[str, Texture] = {
         Texture("roughness", ("roughness",), 16, "linear", "perceptual roughness (glTF / Principled)"),
         Texture("metallic", ("metallic",), 16, "linear", "metalness"),
         Texture("orm", ("occlusion", "roughness", "metallic"), 16, "linear",
-                "R occlusion (1: not captured), G roughness, B metallic (glTF metallicRoughness / Unreal ORM)"),
+                "R ambient occlusion (from the height map; 1 with occlusion off), G roughness, B metallic "
+                "(glTF metallicRoughness / Unreal ORM)"),
         Texture("mask", ("mask",), 8, "linear", "255 where the captured surface is valid, 0 elsewhere"),
+        Texture("occlusion", ("occlusion",), 16, "linear",
+                "ambient occlusion baked from the height map (1 = open sky); also in ORM R / mask map G"),
     )
 }
 UNITY_MASKMAP = Texture("maskmap", ("metallic", "occlusion", "1", "smoothness"), 16, "linear",
@@ -280,16 +284,21 @@ def export(
     glb: bool = True,
     height_method: str = "frankot-chellappa",
     frame: str = "camera",
+    occlusion: bool = True,
+    ao_radius: float | None = None,
 ) -> dict[str, str]:
     """Write the texture set of ``maps`` (a MaterialMaps or a result folder) into ``out``.
 
     name: file prefix (default: the result folder's name, else ``"material"``). preset: one of :data:`PRESETS`.
     normal: ``"gl"`` / ``"dx"``; ``None`` = the preset's convention. ``NAME_normal.png`` is always OpenGL;
     ``"dx"`` adds ``NAME_normal_dx.png``. height: write ``NAME_height.exr`` (the maps' height, else integrated
-    from the normals with ``height_method``). mesh: also ``NAME_mesh.ply``. Refuses to replace existing files
+    from the normals with ``height_method``). mesh: also ``NAME_mesh.ply``. occlusion: bake ambient occlusion from
+    the height map (:func:`matcap.height.ambient_occlusion`, horizon radius ``ao_radius`` pixels, default 2% of the
+    larger image side, at least 4) into the occlusion channels (ORM R, Unity mask map G, glTF occlusionTexture);
+    off: occlusion 1. Refuses to replace existing files
     unless ``overwrite``. Returns {file key: path written}.
     """
-    from matcap.height import METHODS, height_mesh, integrate_normals
+    from matcap.height import METHODS, ambient_occlusion, height_mesh, integrate_normals
 
     if preset not in PRESETS:
         raise MatcapError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
@@ -311,9 +320,28 @@ def export(
     if not maps.mask.any():
         raise MatcapError("the mask is empty: nothing to export")
 
+    if ao_radius is not None and not ao_radius >= 1:
+        raise MatcapError(f"the occlusion radius must be at least 1 pixel, got {ao_radius}")
     m = tangent_frame(maps.normal, maps.mask, frame)
     src, missing = _sources(maps, m)
+    hmap = how = None
+    if height or occlusion:
+        if maps.height is not None:
+            hmap, how = np.where(maps.mask, np.nan_to_num(maps.height), 0.0).astype(np.float32), "given with the maps"
+        else:
+            # integrate the tangent-space normals: heights along the sample's N (= camera z for frame "camera")
+            tangent = camera_to_tangent(maps.normal, maps.mask, m)
+            hmap, how = integrate_normals(tangent, maps.mask, height_method), f"integrated ({height_method})"
+    occlusion_info: dict[str, Any] = {"method": "none (1 everywhere)"}
+    if occlusion:
+        h, w = maps.shape
+        radius = float(ao_radius) if ao_radius is not None else max(4.0, 0.02 * max(h, w))
+        src["occlusion"] = ambient_occlusion(hmap, maps.mask, radius=radius)
+        occlusion_info = {"method": "horizon-based ambient occlusion of the height map", "radius_px": radius,
+                          "directions": 16, "mean": float(src["occlusion"][maps.mask].mean())}
     textures = [TEXTURES[k] for k in ("basecolor", "normal", "roughness", "metallic", "orm", "mask")]
+    if occlusion:
+        textures.insert(5, TEXTURES["occlusion"])
     if normal == "dx":
         textures.insert(2, TEXTURES["normal_dx"])
     textures += list(spec.extra)
@@ -349,12 +377,6 @@ def export(
         }
     height_info = None
     if height:
-        if maps.height is not None:
-            hmap, how = np.where(maps.mask, np.nan_to_num(maps.height), 0.0).astype(np.float32), "given with the maps"
-        else:
-            # integrate the tangent-space normals: heights along the sample's N (= camera z for frame "camera")
-            tangent = camera_to_tangent(maps.normal, maps.mask, m)
-            hmap, how = integrate_normals(tangent, maps.mask, height_method), f"integrated ({height_method})"
         imageio.write_exr(paths["height"], hmap)
         height_info = {"method": how, "range": [float(hmap[maps.mask].min()), float(hmap[maps.mask].max())]}
         files["height"] = {
@@ -370,7 +392,7 @@ def export(
                              "binary PLY, one vertex per masked pixel, x right / y up / z height, pixel units, "
                              "sRGB vertex colours"}
     if glb:
-        imageio.write_bytes_atomic(paths["glb"], build_glb(maps, src, missing, name))
+        imageio.write_bytes_atomic(paths["glb"], build_glb(maps, src, missing, name, occlusion))
         files["glb"] = {"file": paths["glb"].name, "description":
                         "glTF 2.0 quad (width 1, height H/W, facing +Z, +Y up) with a metallic-roughness "
                         "material; 8-bit textures inside"}
@@ -397,6 +419,7 @@ def export(
         "filled": filled,
         "defaults": {k: list(v) if isinstance(v, tuple) else v for k, v in DEFAULTS.items()},
         "height": height_info,
+        "occlusion": occlusion_info,
         "model": provenance(maps.meta),
     }
     imageio.write_text_atomic(paths["json"], json.dumps(info, indent=2) + "\n")
@@ -410,8 +433,10 @@ def _pil(x: np.ndarray):
     return Image.fromarray(imageio.quantize(x, 8))
 
 
-def build_glb(maps: MaterialMaps, src: dict[str, np.ndarray], missing: list[str], name: str) -> bytes:
-    """The glb bytes: one quad, UV = image axes (V up), glTF metallic-roughness material with 8-bit textures."""
+def build_glb(maps: MaterialMaps, src: dict[str, np.ndarray], missing: list[str], name: str,
+              occlusion: bool = False) -> bytes:
+    """The glb bytes: one quad, UV = image axes (V up), glTF metallic-roughness material with 8-bit textures
+    (``occlusion``: plus ``src["occlusion"]`` as the occlusionTexture)."""
     import trimesh
     from trimesh.visual.material import PBRMaterial
 
@@ -436,6 +461,8 @@ def build_glb(maps: MaterialMaps, src: dict[str, np.ndarray], missing: list[str]
     else:
         kwargs["roughnessFactor"], kwargs["metallicFactor"] = float(DEFAULTS["roughness"]), float(DEFAULTS["metallic"])
     kwargs["normalTexture"] = _pil(np.stack([src[f"normal_gl.{c}"] for c in "xyz"], axis=2))
+    if occlusion:
+        kwargs["occlusionTexture"] = _pil(np.repeat(src["occlusion"][..., None], 3, axis=2))
     material = PBRMaterial(**kwargs)
     quad = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_normals=np.tile([0.0, 0.0, 1.0], (4, 1)),
                            visual=trimesh.visual.TextureVisuals(uv=uv, material=material), process=False)

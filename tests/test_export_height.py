@@ -144,3 +144,34 @@ def test_height_mesh_ply(tmp_path):
     assert np.allclose(np.sort(mesh.vertices[:, 2]), np.sort(hgt[mask]), atol=1e-5)
     assert (mesh.face_normals[:, 2] > 0).all()  # faces toward the camera
     assert mesh.vertices[:, 2].argmax() == np.argmax(hgt[mask])
+
+
+@pytest.mark.parametrize("depth", [4.0, 8.0])
+def test_ambient_occlusion_of_a_trench_floor_matches_the_analytic_value(depth):
+    """Floor of a long trench (walls 4 and 5 pixel centres away, i.e. width 9 between wall tops): the cosine-weighted
+    sky fraction is 1 / sqrt(1 + (2 d / w)^2)."""
+    from matcap.height import ambient_occlusion
+
+    h = np.zeros((128, 128))
+    h[:, 60:68] = -depth
+    ao = ambient_occlusion(h, radius=60, directions=64, steps=60)
+    expected = 1 / np.sqrt(1 + (2 * depth / 9.0) ** 2)
+    assert abs(ao[64, 63] - expected) < 0.03
+    assert ao[64, 10] == pytest.approx(1.0)  # open ground far from the trench
+
+
+def test_ambient_occlusion_flat_tilted_masked_and_bad_input():
+    from matcap.height import ambient_occlusion
+
+    yy, xx = np.mgrid[0:64, 0:64].astype(float)
+    assert ambient_occlusion(np.zeros((64, 64))).min() == 1.0
+    assert ambient_occlusion(0.7 * xx - 0.3 * yy).min() > 0.98  # a tilted plane is not occluded by itself
+    mask = np.zeros((64, 64), bool)
+    mask[:, :32] = True
+    wall = np.where(xx >= 32, 50.0, 0.0)  # a tall wall outside the mask casts no occlusion
+    ao = ambient_occlusion(wall, mask)
+    assert ao[mask].min() > 0.98 and (ao[~mask] == 1.0).all()
+    with pytest.raises(ValueError, match="height must be"):
+        ambient_occlusion(np.zeros((4, 4, 3)))
+    with pytest.raises(ValueError, match="mask shape"):
+        ambient_occlusion(np.zeros((4, 4)), np.ones((3, 4), bool))

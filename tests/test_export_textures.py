@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from matcap import MaterialMaps
+from matcap.errors import MatcapError
 from matcap.export import PRESETS, export, read_texture_set
 from matcap.imageio import linear_to_srgb, read_exr
 
@@ -90,7 +91,8 @@ def test_orm_layout(exported):
     _, paths = exported
     orm = raw(paths["orm"])
     assert orm.dtype == np.uint16 and orm.shape == (H, W, 3)
-    assert (orm[..., 0] == 65535).all()  # occlusion not captured: 1
+    assert np.array_equal(orm[..., 0], raw(paths["occlusion"]))  # R = ambient occlusion baked from the height
+    assert raw(paths["occlusion"]).min() < 65535  # random normals make a rough surface: some texels are occluded
     assert np.array_equal(orm[..., 1], raw(paths["roughness"]))
     assert np.array_equal(orm[..., 2], raw(paths["metallic"]))
 
@@ -109,11 +111,12 @@ def test_json_describes_files_and_provenance(exported):
 
 def test_unity_hdrp_mask_map(tmp_path):
     maps = random_maps(1)
-    paths = export(maps, tmp_path, name="u", preset="unity-hdrp", glb=False, height=False)
+    paths = export(maps, tmp_path, name="u", preset="unity-hdrp", glb=False, height=False, occlusion=False)
+    assert "occlusion" not in paths and "height" not in paths
     mm = raw(paths["maskmap"])
     assert mm.dtype == np.uint16 and mm.shape == (H, W, 4)
     assert np.abs(mm[..., 0] / 65535.0 - maps.metallic).max() <= Q16  # R metallic
-    assert (mm[..., 1] == 65535).all()  # G occlusion (1)
+    assert (mm[..., 1] == 65535).all()  # G occlusion (1: not baked)
     assert (mm[..., 2] == 65535).all()  # B detail mask (1)
     assert np.abs(mm[..., 3] / 65535.0 - (1 - maps.roughness)).max() <= Q16  # A smoothness = 1 - roughness
     assert "normal_dx" not in paths  # Unity is OpenGL
@@ -142,7 +145,7 @@ def test_unreal_and_blender_presets(tmp_path):
 def test_normal_only_result(tmp_path):
     maps = random_maps(3, base_color=None, roughness=None, metallic=None, height=None)
     paths = export(maps, tmp_path, name="n")
-    assert set(paths) == {"normal", "mask", "height", "glb", "json"}
+    assert set(paths) == {"normal", "occlusion", "mask", "height", "glb", "json"}
     info = json.loads(open(paths["json"]).read())
     assert info["missing"] == ["base_color", "roughness", "metallic"]
     # one BRDF map present: ORM written, the missing channel filled with the documented constant
@@ -189,3 +192,16 @@ def test_cli_choices_match_library_tables():
     from matcap.height import METHODS
 
     assert tuple(PRESETS) == PRESET_NAMES and METHODS == HEIGHT_METHODS
+
+
+def test_occlusion_is_baked_into_every_occlusion_channel(tmp_path):
+    maps = random_maps(3)
+    paths = export(maps, tmp_path, name="o", preset="unity-hdrp", height=False, ao_radius=6)
+    occ = raw(paths["occlusion"])
+    assert occ.dtype == np.uint16 and occ.shape == (H, W)
+    assert np.array_equal(raw(paths["maskmap"])[..., 1], occ)
+    assert np.array_equal(raw(paths["orm"])[..., 0], occ)
+    info = json.loads(open(paths["json"]).read())
+    assert info["occlusion"]["radius_px"] == 6 and 0 < info["occlusion"]["mean"] < 1
+    with pytest.raises(MatcapError, match="occlusion radius must be at least 1 pixel"):
+        export(maps, tmp_path / "bad", ao_radius=0.5)

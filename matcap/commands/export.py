@@ -26,6 +26,10 @@ def register(sub) -> None:
     p.add_argument("--height-method", default="frankot-chellappa", choices=HEIGHT_METHODS,
                    help="normal integration for the height map (poisson-masked respects the mask edge and depth "
                         "discontinuities; default frankot-chellappa)")
+    p.add_argument("--no-ao", action="store_true",
+                   help="do not bake ambient occlusion from the height map (occlusion channels stay 1)")
+    p.add_argument("--ao-radius", type=float, metavar="PX",
+                   help="horizon search radius of the ambient occlusion in pixels (default 2%% of the larger side)")
     p.add_argument("--mesh", action="store_true", help="also write NAME_mesh.ply, the surface from the height map")
     p.add_argument("--fit-frame", action="store_true",
                    help="tangent space relative to the mean surface normal (sample photographed at an angle) "
@@ -48,7 +52,7 @@ def run(args) -> int:
     paths = export(
         args.result, args.out, name=args.name, preset=args.preset, normal=args.normal, height=not args.no_height,
         mesh=args.mesh, overwrite=args.overwrite, glb=not args.no_glb, height_method=args.height_method,
-        frame="fit" if args.fit_frame else "camera",
+        frame="fit" if args.fit_frame else "camera", occlusion=not args.no_ao, ao_radius=args.ao_radius,
     )
     for key, path in paths.items():
         print(f"{key:>10}  {path}")
