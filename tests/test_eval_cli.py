@@ -88,7 +88,7 @@ def test_reference_mode_without_ground_truth(uw_like, tmp_path, capsys):
 def test_learned_method_gets_images_lazily(dataset, tmp_path, monkeypatch, capsys):
     calls = []
 
-    def estimate(images, mask, *, weights=None, max_images=None, seed=0, device="cpu", progress=False):
+    def estimate(images, mask, *, weights=None, max_images=None, seed=0, device="cpu", views=1, progress=False):
         calls.append((len(images), seed, weights))
         return types.SimpleNamespace(normal=np.where(mask[:, :, None], [0.0, 0.0, 1.0], 0.0))
 
