@@ -7,6 +7,7 @@ undo the geometry -> :class:`MaterialMaps`.
 """
 from __future__ import annotations
 
+import functools
 import os
 import re
 import time
@@ -322,11 +323,9 @@ def estimate(
             autocast_dtype=torch.bfloat16 if bf16 else None,
         )
         if fr.size > native:
-            def run(xv, mv, _model=loaded.model, _native=native, **kw):
-                return predict_scalable(_model, xv, mv, decoder_resolution=_native, **kw)
+            run = functools.partial(predict_scalable, loaded.model, decoder_resolution=native)
         else:
-            def run(xv, mv, _model=loaded.model, **kw):
-                return predict(_model, xv, mv, **kw)
+            run = functools.partial(predict, loaded.model)
         with torch.inference_mode():
             out = predict_views(run, x, m, views=views, **kwargs)
         if target == "normal":
