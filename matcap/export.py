@@ -47,8 +47,7 @@ class Texture:
 
     Sources: ``base_color.r|g|b`` (sRGB-encoded), ``normal_gl.x|y|z`` / ``normal_dx.x|y|z`` ((n + 1) / 2),
     ``roughness``, ``smoothness`` (1 - roughness), ``metallic``, ``occlusion`` (baked from the height map, or 1),
-    ``mask``,
-    ``0``, ``1``.
+    ``mask``, ``0``, ``1``.
     """
 
     key: str  # file name is NAME_<key>.png
@@ -336,9 +335,10 @@ def export(
     if occlusion:
         h, w = maps.shape
         radius = float(ao_radius) if ao_radius is not None else max(4.0, 0.02 * max(h, w))
-        src["occlusion"] = ambient_occlusion(hmap, maps.mask, radius=radius)
+        directions = 16
+        src["occlusion"] = ambient_occlusion(hmap, maps.mask, radius=radius, directions=directions)
         occlusion_info = {"method": "horizon-based ambient occlusion of the height map", "radius_px": radius,
-                          "directions": 16, "mean": float(src["occlusion"][maps.mask].mean())}
+                          "directions": directions, "mean": float(src["occlusion"][maps.mask].mean())}
     textures = [TEXTURES[k] for k in ("basecolor", "normal", "roughness", "metallic", "orm", "mask")]
     if occlusion:
         textures.insert(5, TEXTURES["occlusion"])

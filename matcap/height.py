@@ -189,9 +189,10 @@ def ambient_occlusion(height: np.ndarray, mask: np.ndarray | None = None, *, rad
     pad = int(np.ceil(radius)) + 1
     hp = np.full((rows + 2 * pad, cols + 2 * pad), -np.inf)
     hp[pad:pad + rows, pad:pad + cols] = np.where(mask, h, -np.inf)
-    # local slope along each azimuth from central differences inside the mask (one-sided at its edge)
-    g_col = np.gradient(np.where(mask, h, 0.0), axis=1)
-    g_up = -np.gradient(np.where(mask, h, 0.0), axis=0)  # d h / d y with y up = -row
+    # local slope along each azimuth from central differences (height 0 outside the mask)
+    inside = np.where(mask, h, 0.0)
+    g_col = np.gradient(inside, axis=1)
+    g_up = -np.gradient(inside, axis=0)  # d h / d y with y up = -row
     distances = np.unique(np.round(np.geomspace(1.0, radius, steps) * 4) / 4)
     total = np.zeros(h.shape)
     for k in range(directions):
@@ -206,7 +207,7 @@ def ambient_occlusion(height: np.ndarray, mask: np.ndarray | None = None, *, rad
             shifted = hp[pad + orow:pad + orow + rows, pad + oc:pad + oc + cols]
             np.maximum(best, (shifted - h) / dist, out=best)
         tangent = g_col * dx + g_up * dy
-        elevation = np.arctan(np.where(np.isfinite(best), best, -np.inf)) - np.arctan(tangent)
+        elevation = np.arctan(best) - np.arctan(tangent)  # best = -inf (no occluder) gives -pi/2
         total += np.cos(np.clip(elevation, 0.0, np.pi / 2)) ** 2
     ao = total / directions
     return np.where(mask, np.clip(ao, 0.0, 1.0), 1.0).astype(np.float32)
