@@ -195,9 +195,9 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
         sched.load_state_dict(ckpt["scheduler"])
         # a resumed run may change --lr (e.g. to anneal): the schedule then follows the new peak learning rate
         sched.base_lrs = [tc.lr for _ in sched.base_lrs]
-        for group, factor in zip(opt.param_groups, [lr_factor(sched.last_epoch, tc)] * len(opt.param_groups)):
+        for group in opt.param_groups:
             group["initial_lr"] = tc.lr
-            group["lr"] = tc.lr * factor
+            group["lr"] = tc.lr * lr_factor(sched.last_epoch, tc)
         start, best, wall_before = int(ckpt["step"]), float(ckpt["best"]), float(ckpt["wall_s"])
     net = model
     if ddp:

@@ -27,8 +27,7 @@ def score(weights: str | Path, data: str | Path, scenes: int | None = None, devi
     model, config, _ = load_model(weights, device=device)
     found = list_scenes(data)
     count = len(found) if scenes is None else min(scenes, len(found))
-    with torch.inference_mode():
-        result = validate(model, found, config.target, torch.device(device), count)
+    result = validate(model, found, config.target, torch.device(device), count)  # validate() runs without grad
     result = {"weights": str(weights), "target": config.target, "scenes": count, **result}
     if config.target == "brdf":
         for key in ("base_color", "roughness", "metallic"):
