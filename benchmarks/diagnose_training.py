@@ -1,0 +1,91 @@
+"""Two diagnostics behind the statements in docs/training.md.
+
+  python benchmarks/diagnose_training.py overfit --data DATA [--init W] [--steps 60]
+      Fit ONE fixed batch (B=2, K=4, 128^2, 768 pixels, the small recipe, bf16) and print its loss and mean angular
+      error every 5 steps: if this does not fall, the optimisation is broken; if it does while the training loss
+      stalls, the model is short of data and steps.
+  python benchmarks/diagnose_training.py albedo-bound --data DATA_TEST
+      Base-color RMSE of the best constant vs. an oracle that knows the relative albedo (ground truth divided by
+      the scene's brightest pixel) and scales it by one global factor: the most an albedo predictor can gain when
+      the per-image normalisation hides the absolute scale.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+
+def overfit(data: str, init: str | None, steps: int, lr: float) -> None:
+    import torch
+
+    from networks.checkpoint import load_model
+    from networks.config import get_config
+    from networks.data import SampleSpec, SceneCache, draw_batch, list_scenes
+    from networks.model import SDMUniPS
+    from networks.train import compute_loss, gather_pixels, to_torch
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(get_config("small", "normal"), canonical_resolution=128, dropout=0.0, pixel_samples=768)
+    model = SDMUniPS(cfg)
+    if init:
+        model.load_state_dict(load_model(init)[0].state_dict())
+    model.train()
+    opt = torch.optim.AdamW(model.parameters(), lr, weight_decay=0.05)
+    spec = SampleSpec(resolution=128, min_images=4, max_images=4, pixel_samples=768)
+    batch = to_torch(draw_batch(SceneCache(list_scenes(data)), spec, 2, 0, 12345), "cpu")
+    truth = gather_pixels(batch["normal"], batch["pixel_index"])
+    for step in range(steps):
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            pred = model(batch["images"], batch["input_mask"], batch["pixel_index"])
+        loss, _ = compute_loss(pred, batch, "normal")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        if step % 5 == 0 or step == steps - 1:
+            cos = (pred["normal"].detach().float() * truth).sum(-1).clamp(-1, 1)
+            print(f"step {step:3d}  loss {float(loss):.4f}  MAE {float(torch.rad2deg(torch.acos(cos)).mean()):.2f} deg",
+                  flush=True)
+
+
+def albedo_bound(data: str) -> None:
+    from networks.data import list_scenes
+
+    truth, relative = [], []
+    for path in list_scenes(data):
+        with np.load(Path(path) / "data.npz") as z:
+            valid = z["mask"] & (np.linalg.norm(z["normal"].astype(np.float64), axis=2) > 0.5)
+            b = z["base_color"].astype(np.float64)[valid]
+        truth.append(b)
+        relative.append(b / max(b.mean(1).max(), 1e-3))
+    g, r = np.concatenate(truth), np.concatenate(relative)
+    k = (r * g).sum() / (r * r).sum()
+    const, oracle = g.std(), np.sqrt(((k * r - g) ** 2).mean())
+    print(f"scenes {len(truth)}  constant RMSE {const:.4f}  relative-albedo oracle RMSE {oracle:.4f} "
+          f"({1 - oracle / const:.0%} below the constant)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="what", required=True)
+    o = sub.add_parser("overfit")
+    o.add_argument("--data", required=True)
+    o.add_argument("--init", help="start from these weights (default: random)")
+    o.add_argument("--steps", type=int, default=60)
+    o.add_argument("--lr", type=float, default=4e-4)
+    a = sub.add_parser("albedo-bound")
+    a.add_argument("--data", required=True)
+    args = ap.parse_args(argv)
+    if args.what == "overfit":
+        overfit(args.data, args.init, args.steps, args.lr)
+    else:
+        albedo_bound(args.data)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
