@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from networks.dihedral import DIHEDRAL, transform_map
+
 #: The five light configurations of PS-Mix: (a) env, (b) directional, (c) point, (d) a+b, (e) a+c.
 CONFIGURATIONS = (("env",), ("directional",), ("point",), ("env", "directional"), ("env", "point"))
 
@@ -59,6 +61,9 @@ class SampleSpec:
     """Probability that the network gets no mask (all ones) so mask-free scenes are learned."""
     min_crop: float = 0.6
     """Smallest crop side as a fraction of the scene side (random crop + rescale augmentation)."""
+    dihedral: bool = True
+    """Apply one of the 8 mirror / 90-degree symmetries of the image plane, drawn at random, to the images and
+    maps (normals turned with them). Exact for an orthographic camera: it is the mirrored / rotated scene."""
 
 
 def _combine(basis: np.ndarray, kinds: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -128,6 +133,14 @@ def draw_sample(scene: dict[str, np.ndarray], spec: SampleSpec, rng: np.random.G
         "roughness": _resize(np.ascontiguousarray(scene["roughness"][sl].astype(np.float32)), R, nearest=True),
         "metallic": _resize(np.ascontiguousarray(scene["metallic"][sl].astype(np.float32)), R, nearest=True),
     }
+    if spec.dihedral:
+        t = DIHEDRAL[int(rng.integers(len(DIHEDRAL)))]
+        for key, value in out.items():
+            if key == "images":  # (K, 3, R, R): move the plane axes first, transform, move back
+                out[key] = np.ascontiguousarray(transform_map(value.transpose(2, 3, 0, 1), t).transpose(2, 3, 0, 1))
+            else:
+                out[key] = transform_map(value, t, normal=(key == "normal"))
+        loss_mask = out["loss_mask"]
     valid = np.flatnonzero(loss_mask.ravel())
     if len(valid) == 0:
         valid = np.arange(R * R)

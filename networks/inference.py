@@ -7,6 +7,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from networks.dihedral import DIHEDRAL, transform_images, untransform_map
 from networks.model import SDMUniPS
 
 Progress = Callable[[int, int], None]
@@ -149,46 +150,7 @@ def predict_scalable(model: SDMUniPS, images: torch.Tensor, mask: torch.Tensor, 
 
 
 # ------------------------------------------------------------------------------------ test-time augmentation
-#: The 8 symmetries of the square image plane as (transpose, flip_columns, flip_rows), applied in that order.
-#: ``views=k`` uses the first k: 1 = identity, 2 = + left-right mirror, 4 = + up-down mirrors, 8 = + transposes.
-DIHEDRAL = (
-    (False, False, False), (False, True, False), (False, False, True), (False, True, True),
-    (True, False, False), (True, True, False), (True, False, True), (True, True, True),
-)
-
-
-def _transform_images(x: torch.Tensor, t: tuple[bool, bool, bool]) -> torch.Tensor:
-    """Apply transform ``t`` to the last two (row, column) axes of a tensor."""
-    transpose, flip_c, flip_r = t
-    if transpose:
-        x = x.transpose(-1, -2)
-    if flip_c:
-        x = x.flip(-1)
-    if flip_r:
-        x = x.flip(-2)
-    return x.contiguous()
-
-
-def _untransform_map(a: np.ndarray, t: tuple[bool, bool, bool], normal: bool) -> np.ndarray:
-    """Bring a predicted (S, S[, C]) map made in the frame of transform ``t`` back to the original frame.
-
-    Normals are in camera coordinates (x right = columns, y up = -rows, z towards the camera): mirroring the
-    columns negates x, mirroring the rows negates y, and transposing maps (x, y) to (-y, -x)."""
-    transpose, flip_c, flip_r = t
-    a = a.copy()
-    if flip_r:
-        a = a[::-1]
-        if normal:
-            a[..., 1] *= -1
-    if flip_c:
-        a = a[:, ::-1]
-        if normal:
-            a[..., 0] *= -1
-    if transpose:
-        a = a.swapaxes(0, 1)
-        if normal:
-            a = a[..., [1, 0, 2]] * np.array([-1.0, -1.0, 1.0], np.float32)
-    return np.ascontiguousarray(a)
+# DIHEDRAL, transform_images and untransform_map live in networks/dihedral.py (training shares them).
 
 
 def predict_views(predict_fn: Callable[..., dict[str, np.ndarray]], images: torch.Tensor, mask: torch.Tensor,
@@ -211,8 +173,8 @@ def predict_views(predict_fn: Callable[..., dict[str, np.ndarray]], images: torc
         cb = None
         if progress is not None:
             cb = (lambda done, _tot, _off=i * total // views: progress(_off + done, total))
-        res = predict_fn(_transform_images(images, t), _transform_images(mask, t), progress=cb, **kwargs)
-        res = {k: _untransform_map(v, t, normal=(k == "normal")) for k, v in res.items()}
+        res = predict_fn(transform_images(images, t), transform_images(mask, t), progress=cb, **kwargs)
+        res = {k: untransform_map(v, t, normal=(k == "normal")) for k, v in res.items()}
         if acc is None:
             acc = res
         else:

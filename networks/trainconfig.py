@@ -85,6 +85,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(s, name))
     for name in ("fresh_combination_prob", "drop_mask_prob", "min_crop"):
         p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(s, name))
+    p.add_argument("--no-dihedral", dest="dihedral", action="store_false",
+                   help="no random mirror / 90-degree rotation augmentation")
     p.add_argument("--val-data", default="", help="validation dataset (synthetic test split)")
     p.add_argument("--device", default=d.device)
     p.add_argument("--bf16", action="store_true")

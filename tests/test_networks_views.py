@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from networks.config import get_config
-from networks.inference import DIHEDRAL, predict, predict_views
+from networks.dihedral import DIHEDRAL, transform_images, transform_map, untransform_map
+from networks.inference import predict, predict_views
 from networks.model import SDMUniPS
 
 torch.set_num_threads(1)
@@ -49,15 +50,22 @@ def test_views_bring_every_transform_back_to_the_original_frame(views):
 
 
 def test_each_single_transform_is_undone_exactly():
-    from networks.inference import _transform_images, _untransform_map
-
     mask = _off_centre_disk()
     images = torch.zeros(2, 3, 40, 40)
     direct = _dome_predictor(images, mask)["normal"]
     for t in DIHEDRAL:
-        res = _dome_predictor(_transform_images(images, t), _transform_images(mask, t))["normal"]
-        back = _untransform_map(res, t, normal=True)
+        res = _dome_predictor(transform_images(images, t), transform_images(mask, t))["normal"]
+        back = untransform_map(res, t, normal=True)
         assert np.abs(back - direct).max() < 1e-5, t
+        # the forward map transform (training augmentation) agrees with the geometry of the transformed scene
+        assert np.abs(transform_map(direct, t, normal=True) - res).max() < 1e-5, t
+
+
+def test_map_transform_round_trips_exactly():
+    a = np.random.default_rng(0).normal(size=(5, 7, 3)).astype(np.float32)
+    for t in DIHEDRAL:
+        assert np.array_equal(untransform_map(transform_map(a, t, normal=True), t, normal=True), a), t
+        assert np.array_equal(untransform_map(transform_map(a[..., 0], t), t), a[..., 0]), t
 
 
 def test_one_view_is_plain_predict_and_bad_views_raise():

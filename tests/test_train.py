@@ -46,6 +46,30 @@ def test_draw_batch_is_a_pure_function_of_the_step(tiny_dataset):
     assert np.allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-3)
 
 
+def test_dihedral_augmentation_is_an_exact_symmetry_of_the_plain_sample(tiny_dataset):
+    from networks.data import draw_sample, load_scene
+    from networks.dihedral import DIHEDRAL, transform_map
+
+    scene = load_scene(list_scenes(tiny_dataset)[0])
+    used = set()
+    for seed in range(12):
+        plain = draw_sample(scene, SampleSpec(resolution=32, pixel_samples=64, dihedral=False),
+                            np.random.default_rng(seed))
+        aug = draw_sample(scene, SampleSpec(resolution=32, pixel_samples=64), np.random.default_rng(seed))
+        matches = []
+        for t in DIHEDRAL:
+            same = all(np.array_equal(transform_map(plain[k], t, normal=(k == "normal")), aug[k])
+                       for k in ("normal", "loss_mask", "base_color", "roughness", "input_mask"))
+            images = transform_map(plain["images"].transpose(2, 3, 0, 1), t).transpose(2, 3, 0, 1)
+            if same and np.array_equal(images, aug["images"]):
+                matches.append(t)
+        assert matches, seed  # the augmented sample is the plain one under some symmetry
+        used.add(matches[0])
+        flat = aug["loss_mask"].ravel()
+        assert flat[aug["pixel_index"]].all()
+    assert len(used) >= 4  # and the symmetry is drawn at random
+
+
 def test_loss_decreases(tiny_dataset, tmp_path):
     import json
 
