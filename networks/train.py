@@ -19,8 +19,11 @@ import dataclasses
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -137,8 +140,30 @@ def _plain(obj):
 # ------------------------------------------------------------------------------------------ train
 
 
+@contextmanager
+def _stop_requests(enabled: bool):
+    """While active, SIGINT / SIGTERM only set ``flag["stop"]``: the loop then finishes its step, writes the
+    checkpoint and returns, so Ctrl-C or ``kill`` loses nothing and ``--resume`` continues exactly there. Off for
+    data-parallel runs (ranks could see the signal at different steps) and outside the main thread."""
+    flag = {"stop": False}
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield flag
+        return
+
+    def handler(signum, _frame):
+        flag["stop"] = True
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield flag
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
 def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progress: bool = True) -> dict:
-    """Run (or continue) training. Returns the final record (step, loss, last validation)."""
+    """Run (or continue) training. Returns the final record (step, best, last validation; ``"stopped": True``
+    when SIGINT / SIGTERM ended it early, after saving the checkpoint)."""
     from networks.checkpoint import load_model, save_weights
     from networks.model import SDMUniPS
 
@@ -242,47 +267,55 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
     last_val_result: dict | None = None
     running = []
     step = start
-    for step in range(start, tc.steps):
-        torch.manual_seed(tc.seed * 1_000_003 + step * 7919 + rank)  # dropout noise of this step
-        batch = to_torch(draw_batch(cache, tc.sample, tc.batch, tc.seed, step, rank), device)
-        if autocast is not None:
-            with autocast:
+    stopped = False
+    with _stop_requests(enabled=not ddp) as stop:
+        for step in range(start, tc.steps):
+            torch.manual_seed(tc.seed * 1_000_003 + step * 7919 + rank)  # dropout noise of this step
+            batch = to_torch(draw_batch(cache, tc.sample, tc.batch, tc.seed, step, rank), device)
+            if autocast is not None:
+                with autocast:
+                    pred = net(batch["images"], batch["input_mask"], batch["pixel_index"])
+            else:
                 pred = net(batch["images"], batch["input_mask"], batch["pixel_index"])
-        else:
-            pred = net(batch["images"], batch["input_mask"], batch["pixel_index"])
-        loss, terms = compute_loss(pred, batch, tc.target)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        if tc.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
-        opt.step()
-        sched.step()
-        running.append(float(loss.detach()))
-        now = time.perf_counter()
-        wall = wall_before + now - t_start
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(loss=f"{running[-1]:.4f}")
-        if rank == 0 and ((step + 1) % tc.log_every == 0 or step + 1 == tc.steps):
-            record({"event": "train", "step": step + 1, "loss": float(np.mean(running)), **terms,
-                    "lr": sched.get_last_lr()[0], "wall_s": round(wall, 1)})
-            running = []
-        done = step + 1 == tc.steps
-        if rank == 0 and val_scenes and (done or now - last_val >= tc.val_every_s):
-            last_val_result = validate(model, val_scenes, tc.target, device, tc.val_scenes, tc.seed)
-            record({"event": "val", "step": step + 1, "wall_s": round(wall, 1), **last_val_result})
-            score = last_val_result["rmse_mean"] if tc.target == "brdf" else last_val_result["mae"]
-            if score < best:
-                best = score
-                save_weights(out / "best.safetensors", model, config, card(step + 1, wall, last_val_result))
-            last_val = time.perf_counter()
-        if rank == 0 and (done or now - last_ckpt >= tc.checkpoint_every_s):
-            save_checkpoint(step + 1, wall)
-            save_weights(out / "last.safetensors", model, config, card(step + 1, wall, last_val_result))
-            last_ckpt = time.perf_counter()
+            loss, terms = compute_loss(pred, batch, tc.target)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if tc.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
+            opt.step()
+            sched.step()
+            running.append(float(loss.detach()))
+            now = time.perf_counter()
+            wall = wall_before + now - t_start
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{running[-1]:.4f}")
+            if rank == 0 and ((step + 1) % tc.log_every == 0 or step + 1 == tc.steps):
+                record({"event": "train", "step": step + 1, "loss": float(np.mean(running)), **terms,
+                        "lr": sched.get_last_lr()[0], "wall_s": round(wall, 1)})
+                running = []
+            done = step + 1 == tc.steps
+            stopped = stop["stop"] and not done
+            if rank == 0 and val_scenes and (done or now - last_val >= tc.val_every_s):
+                last_val_result = validate(model, val_scenes, tc.target, device, tc.val_scenes, tc.seed)
+                record({"event": "val", "step": step + 1, "wall_s": round(wall, 1), **last_val_result})
+                score = last_val_result["rmse_mean"] if tc.target == "brdf" else last_val_result["mae"]
+                if score < best:
+                    best = score
+                    save_weights(out / "best.safetensors", model, config, card(step + 1, wall, last_val_result))
+                last_val = time.perf_counter()
+            if rank == 0 and (done or stopped or now - last_ckpt >= tc.checkpoint_every_s):
+                save_checkpoint(step + 1, wall)
+                save_weights(out / "last.safetensors", model, config, card(step + 1, wall, last_val_result))
+                last_ckpt = time.perf_counter()
+            if stopped:
+                record({"event": "stopped", "step": step + 1, "wall_s": round(wall, 1)})
+                break
     if bar is not None:
         bar.close()
-    final = {"step": tc.steps, "best": best, "validation": last_val_result}
+    final = {"step": step + 1 if stopped else tc.steps, "best": best, "validation": last_val_result}
+    if stopped:
+        final["stopped"] = True
     if ddp:
         import torch.distributed as dist
 
@@ -310,6 +343,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if int(os.environ.get("RANK", "0")) == 0:
         print(json.dumps(result))
+    if result.get("stopped"):
+        print(f"networks.train: stopped at step {result['step']} (checkpoint saved); continue with --resume",
+              file=sys.stderr)
+        return 130
     return 0
 
 

@@ -94,6 +94,43 @@ def test_resume_equals_uninterrupted(tiny_dataset, tmp_path):
         assert torch.equal(a[k], b[k]), k
 
 
+def test_sigterm_saves_a_checkpoint_that_resumes_exactly(tiny_dataset, tmp_path):
+    import json
+    import signal
+    import time
+
+    from networks.train import train
+
+    out = tmp_path / "stopped"
+    args = [sys.executable, "-m", "networks.train", "--data", str(tiny_dataset), "--preset", "tiny", "--out", str(out),
+            "--steps", "100000", "--batch", "2", "--resolution", "64", "--pixel-samples", "128", "--min-images", "3",
+            "--max-images", "4", "--lr", "2e-3", "--warmup-steps", "2", "--log-every", "1", "--threads", "1",
+            "--quiet"]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, OMP_NUM_THREADS="1"))
+    log = out / "log.jsonl"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (log.exists() and log.read_text().count("\n") >= 2):
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-2000:]
+    assert "continue with --resume" in err and "Traceback" not in err
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    assert records[-1]["event"] == "stopped"
+    stopped = records[-1]["step"]
+    ckpt = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert ckpt["step"] == stopped
+    # resuming from the signal's checkpoint lands on the same weights as an uninterrupted run
+    sample = SampleSpec(resolution=64, min_images=3, max_images=4, pixel_samples=128)
+    common = dict(steps=stopped + 2, threads=1, sample=sample)
+    train(_tc(tiny_dataset, out, **common), resume=True, progress=False)
+    train(_tc(tiny_dataset, tmp_path / "straight", **common), progress=False)
+    a, b = _state(tmp_path / "straight" / "last.safetensors"), _state(out / "last.safetensors")
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
 def test_validation_reports_error_per_lighting_group(tiny_dataset, tiny_val_dataset, tmp_path):
     from networks.train import train
 

@@ -21,5 +21,8 @@ def run(args) -> int:
     from networks.train import config_from_args, train
 
     result = train(config_from_args(args), resume=args.resume, init=args.init, progress=not args.quiet)
+    if result.get("stopped"):
+        print(f"stopped at step {result['step']} (checkpoint saved): continue with the same command and --resume")
+        return 130
     print(f"done: step {result['step']}, best validation {result['best']:.4g}")
     return 0
