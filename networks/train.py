@@ -140,6 +140,50 @@ def _plain(obj):
 # ------------------------------------------------------------------------------------------ train
 
 
+_worker_cache: SceneCache | None = None
+
+
+def _worker_init(scenes: list[Path]) -> None:
+    global _worker_cache
+    import cv2
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the main process handles Ctrl-C and stops the pool
+    cv2.setNumThreads(1)
+    _worker_cache = SceneCache(scenes)
+
+
+def _worker_batch(sample, batch: int, seed: int, rank: int, step: int) -> dict[str, np.ndarray]:
+    assert _worker_cache is not None
+    return draw_batch(_worker_cache, sample, batch, seed, step, rank)
+
+
+def _batches(cache: SceneCache, scenes: list[Path], tc: TrainConfig, start: int, rank: int):
+    """Yield the batches of steps ``start, start + 1, ...`` in order: drawn here, or by ``tc.workers`` spawned
+    processes at most ``2 * workers`` steps ahead (the same batches: each is a pure function of its step)."""
+    if tc.workers <= 0:
+        for step in range(start, tc.steps):
+            yield draw_batch(cache, tc.sample, tc.batch, tc.seed, step, rank)
+        return
+    import collections
+    import functools
+    import multiprocessing
+
+    work = functools.partial(_worker_batch, tc.sample, tc.batch, tc.seed, rank)
+    with multiprocessing.get_context("spawn").Pool(tc.workers, _worker_init, (scenes,)) as pool:
+        pending: collections.deque = collections.deque()
+        upcoming = iter(range(start, tc.steps))
+        for step in upcoming:
+            pending.append(pool.apply_async(work, (step,)))
+            if len(pending) >= 2 * tc.workers:
+                break
+        while pending:
+            result = pending.popleft().get()
+            nxt = next(upcoming, None)
+            if nxt is not None:
+                pending.append(pool.apply_async(work, (nxt,)))
+            yield result
+
+
 @contextmanager
 def _stop_requests(enabled: bool):
     """While active, SIGINT / SIGTERM only set ``flag["stop"]``: the loop then finishes its step, writes the
@@ -268,10 +312,11 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
     running = []
     step = start
     stopped = False
+    batches = _batches(cache, scenes, tc, start, rank)
     with _stop_requests(enabled=not ddp) as stop:
-        for step in range(start, tc.steps):
+        for step, drawn in zip(range(start, tc.steps), batches):
             torch.manual_seed(tc.seed * 1_000_003 + step * 7919 + rank)  # dropout noise of this step
-            batch = to_torch(draw_batch(cache, tc.sample, tc.batch, tc.seed, step, rank), device)
+            batch = to_torch(drawn, device)
             if autocast is not None:
                 with autocast:
                     pred = net(batch["images"], batch["input_mask"], batch["pixel_index"])
@@ -311,6 +356,7 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
             if stopped:
                 record({"event": "stopped", "step": step + 1, "wall_s": round(wall, 1)})
                 break
+    batches.close()  # stops the worker processes, if any
     if bar is not None:
         bar.close()
     final = {"step": step + 1 if stopped else tc.steps, "best": best, "validation": last_val_result}

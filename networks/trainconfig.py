@@ -60,6 +60,9 @@ class TrainConfig:
     """bfloat16 autocast for forward/backward."""
     threads: int = 0
     """torch intra-op threads (0 = torch default)."""
+    workers: int = 0
+    """Processes that draw the next batches ahead of the optimiser (0 = draw them in the training loop). The
+    batches are the same either way (each is a pure function of its step); use them when a GPU waits for data."""
     save_all_ranks: bool = False
     """Every rank writes final_rank<r>.safetensors (used by the DDP test)."""
 
@@ -76,7 +79,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--canonical-resolution", type=int, default=d.canonical_resolution,
                    help="override the preset's canonical resolution (0 = preset's)")
     p.add_argument("--dropout", type=float, default=d.dropout, help="override the preset's dropout (<0 = preset's)")
-    for name in ("steps", "batch", "warmup_steps", "decay_every", "log_every", "seed", "threads", "val_scenes"):
+    for name in ("steps", "batch", "warmup_steps", "decay_every", "log_every", "seed", "threads", "workers",
+                 "val_scenes"):
         p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(d, name))
     for name in ("lr", "weight_decay", "decay_factor", "grad_clip", "val_every_s", "checkpoint_every_s"):
         p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(d, name))

@@ -131,6 +131,16 @@ def test_sigterm_saves_a_checkpoint_that_resumes_exactly(tiny_dataset, tmp_path)
         assert torch.equal(a[k], b[k]), k
 
 
+def test_worker_processes_draw_the_same_batches(tiny_dataset, tmp_path):
+    from networks.train import train
+
+    train(_tc(tiny_dataset, tmp_path / "inline", steps=3), progress=False)
+    train(_tc(tiny_dataset, tmp_path / "workers", steps=3, workers=2), progress=False)
+    a, b = _state(tmp_path / "inline" / "last.safetensors"), _state(tmp_path / "workers" / "last.safetensors")
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
 def test_validation_reports_error_per_lighting_group(tiny_dataset, tiny_val_dataset, tmp_path):
     from networks.train import train
 
