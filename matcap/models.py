@@ -62,8 +62,13 @@ def card_markdown(name: str, config, card: dict[str, Any], notes: str = "") -> s
 
 
 def install(weights: str | os.PathLike, name: str, *, fp16: bool = True, overwrite: bool = False,
-            notes: str = "", folder: str | os.PathLike = WEIGHTS_DIR) -> Path:
-    """Copy a trained run's weights into ``folder`` as ``NAME.safetensors`` (fp16 if asked) + ``NAME.md``."""
+            notes: str = "", folder: str | os.PathLike = WEIGHTS_DIR, pixel_samples: int | None = None) -> Path:
+    """Copy a trained run's weights into ``folder`` as ``NAME.safetensors`` (fp16 if asked) + ``NAME.md``.
+
+    ``pixel_samples`` sets the model's default inference sample-set size (pixels per attention set; the run's
+    training value otherwise). It changes no weight: the regressor takes sets of any size."""
+    import dataclasses
+
     import torch
     from safetensors.torch import load_file, save_file
 
@@ -72,6 +77,11 @@ def install(weights: str | os.PathLike, name: str, *, fp16: bool = True, overwri
 
     src = Path(weights)
     config, card = read_metadata(src)
+    if pixel_samples is not None:
+        if pixel_samples < 1:
+            raise MatcapError(f"--pixel-samples must be at least 1, got {pixel_samples}")
+        card = dict(card, inference_pixel_samples=int(pixel_samples), trained_pixel_samples=config.pixel_samples)
+        config = dataclasses.replace(config, pixel_samples=int(pixel_samples))
     dst = Path(folder) / f"{name}.safetensors"
     if dst.exists() and not overwrite:
         raise MatcapError(f"{dst} exists; pass --overwrite to replace it")

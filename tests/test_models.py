@@ -4,6 +4,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
 import torch
 
 from matcap.models import install, installed_models
@@ -42,6 +43,23 @@ def test_install_fp16_lists_and_loads(tmp_path):
         assert "exists" in str(exc)
     else:
         raise AssertionError("install overwrote without --overwrite")
+
+
+def test_install_can_set_the_inference_sample_set_size(tmp_path):
+    from networks.checkpoint import load_model, read_metadata, save_weights
+    from networks.config import get_config
+    from networks.model import SDMUniPS
+
+    cfg = get_config("tiny", "normal")
+    src = save_weights(tmp_path / "best.safetensors", SDMUniPS(cfg), cfg, {"steps": 1})
+    dst = install(src, "n", folder=tmp_path, pixel_samples=300)
+    config, card = read_metadata(dst)
+    assert config.pixel_samples == 300 and card["inference_pixel_samples"] == 300
+    assert card["trained_pixel_samples"] == cfg.pixel_samples
+    loaded, _, _ = load_model(dst)
+    assert loaded.config.pixel_samples == 300
+    with pytest.raises(Exception, match="pixel-samples"):
+        install(src, "m", folder=tmp_path, pixel_samples=0)
 
 
 def test_models_cli_lists_the_bundled_models():

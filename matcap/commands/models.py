@@ -9,6 +9,8 @@ def register(sub) -> None:
     p.add_argument("--name", help="install: model name, e.g. normal_small (the default normal model)")
     p.add_argument("--fp32", action="store_true", help="install: keep float32 (default: store float16)")
     p.add_argument("--notes", help="install: Markdown file appended to the model card")
+    p.add_argument("--pixel-samples", type=int, default=None,
+                   help="install: default inference sample-set size (default: the training run's)")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--json", action="store_true", help="list: print JSON")
     p.set_defaults(func=run)
@@ -25,7 +27,8 @@ def run(args) -> int:
         if not args.weights or not args.name:
             raise MatcapError("usage: matcap models install WEIGHTS --name NAME")
         notes = Path(args.notes).read_text() if args.notes else ""
-        dst = install(args.weights, args.name, fp16=not args.fp32, overwrite=args.overwrite, notes=notes)
+        dst = install(args.weights, args.name, fp16=not args.fp32, overwrite=args.overwrite, notes=notes,
+                      pixel_samples=args.pixel_samples)
         print(f"installed {dst} (+ {dst.with_suffix('.md').name})")
         return 0
     models = installed_models()
