@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 
 GAMMA = 2.2
+REQUIRED = ("basis", "basis_kind", "weights", "exposure", "normal", "mask", "object_mask", "base_color", "roughness",
+            "metallic")
 
 
 def encode_scene(scene: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -92,6 +94,9 @@ def pack(data: str | Path, out_dir: str | Path, max_mb: float = 40.0, start: int
 
     for path in scenes:
         with np.load(path / "data.npz", allow_pickle=False) as z:
+            missing = [k for k in REQUIRED if k not in z.files]
+            if missing:
+                raise ValueError(f"{path / 'data.npz'} lacks {', '.join(missing)} (not a `matcap synth` scene)")
             arrays = encode_scene({k: z[k] for k in z.files})
         try:
             group = json.loads((path / "spec.json").read_text()).get("lighting_group") or ""
