@@ -35,7 +35,6 @@ from networks.data import SceneCache, draw_batch, list_scenes, load_scene
 from networks.preprocess import normalize_images
 from networks.trainconfig import TrainConfig, add_arguments, config_from_args
 
-
 # ------------------------------------------------------------------------------------------ helpers
 
 

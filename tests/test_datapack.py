@@ -6,8 +6,8 @@ import subprocess
 import sys
 
 import numpy as np
-
 from conftest import lambertian_scene
+
 from networks.datapack import pack, unpack
 
 
