@@ -16,43 +16,34 @@ DIHEDRAL = (
 )
 
 
-def transform_map(a: np.ndarray, t: tuple[bool, bool, bool], normal: bool = False) -> np.ndarray:
-    """Apply ``t`` to an (H, W[, C]) map; ``normal=True`` also turns the vectors of an (H, W, 3) normal map:
-    transposing maps (x, y) to (-y, -x), mirroring the columns negates x, mirroring the rows negates y."""
-    transpose, flip_c, flip_r = t
-    a = np.array(a, copy=True)
-    if transpose:
+def _apply(a: np.ndarray, op: str, normal: bool) -> np.ndarray:
+    """One involutive step on an (H, W[, C]) map: ``transpose`` maps normal (x, y) to (-y, -x), ``flip_c`` (mirror
+    the columns) negates x, ``flip_r`` (mirror the rows) negates y."""
+    if op == "transpose":
         a = a.swapaxes(0, 1)
-        if normal:
-            a = a[..., [1, 0, 2]] * np.array([-1.0, -1.0, 1.0], a.dtype)
-    if flip_c:
-        a = a[:, ::-1]
-        if normal:
-            a[..., 0] *= -1
-    if flip_r:
-        a = a[::-1]
-        if normal:
-            a[..., 1] *= -1
-    return np.ascontiguousarray(a)
+        return a[..., [1, 0, 2]] * np.array([-1.0, -1.0, 1.0], a.dtype) if normal else a
+    a = np.array(a[:, ::-1] if op == "flip_c" else a[::-1])
+    if normal:
+        a[..., 0 if op == "flip_c" else 1] *= -1
+    return a
+
+
+def _ops(t: tuple[bool, bool, bool]) -> list[str]:
+    return [op for op, on in zip(("transpose", "flip_c", "flip_r"), t) if on]
+
+
+def transform_map(a: np.ndarray, t: tuple[bool, bool, bool], normal: bool = False) -> np.ndarray:
+    """Apply ``t`` to an (H, W[, C]) map; ``normal=True`` also turns the vectors of an (H, W, 3) normal map."""
+    for op in _ops(t):
+        a = _apply(a, op, normal)
+    return np.array(a, copy=True, order="C")
 
 
 def untransform_map(a: np.ndarray, t: tuple[bool, bool, bool], normal: bool = False) -> np.ndarray:
-    """Inverse of :func:`transform_map` (the steps undone in reverse order)."""
-    transpose, flip_c, flip_r = t
-    a = np.array(a, copy=True)
-    if flip_r:
-        a = a[::-1]
-        if normal:
-            a[..., 1] *= -1
-    if flip_c:
-        a = a[:, ::-1]
-        if normal:
-            a[..., 0] *= -1
-    if transpose:
-        a = a.swapaxes(0, 1)
-        if normal:
-            a = a[..., [1, 0, 2]] * np.array([-1.0, -1.0, 1.0], a.dtype)
-    return np.ascontiguousarray(a)
+    """Inverse of :func:`transform_map`: each step is its own inverse, undone in reverse order."""
+    for op in reversed(_ops(t)):
+        a = _apply(a, op, normal)
+    return np.array(a, copy=True, order="C")
 
 
 def transform_images(x, t: tuple[bool, bool, bool]):
