@@ -73,11 +73,13 @@ def to_torch(batch: dict[str, np.ndarray], device) -> dict[str, torch.Tensor]:
 
 
 @torch.no_grad()
-def validate(model, scenes: list[Path], target: str, device, max_scenes: int, seed: int = 0) -> dict:
+def validate(model, scenes: list[Path], target: str, device, max_scenes: int, seed: int = 0,
+             pixel_samples: int | None = None) -> dict:
     """Mean angular error (degrees) per lighting group, and BRDF RMSEs (pooled over pixels, with the RMSE of the
     best constant prediction beside them), on the first ``max_scenes`` scenes.
 
-    Each scene is predicted with its 10 stored images and its ground-truth mask, every pixel.
+    Each scene is predicted with its 10 stored images and its ground-truth mask, every pixel, in sample sets of
+    ``pixel_samples`` pixels (default: the model's).
     """
     from networks.inference import predict
 
@@ -99,7 +101,7 @@ def validate(model, scenes: list[Path], target: str, device, max_scenes: int, se
         images = torch.from_numpy(scene["images"].astype(np.float32)).permute(0, 3, 1, 2).to(device)
         m = torch.from_numpy(mask).to(device)
         images = normalize_images(images, m.float().unsqueeze(0))
-        out = predict(model, images, m, seed=seed)
+        out = predict(model, images, m, seed=seed, pixel_samples=pixel_samples)
         n = out["normal"][valid]
         g = gt[valid] / np.linalg.norm(gt[valid], axis=1, keepdims=True)
         err = np.degrees(np.arccos(np.clip((n * g).sum(1) / np.maximum(np.linalg.norm(n, axis=1), 1e-8), -1, 1)))
@@ -157,11 +159,11 @@ def _worker_batch(sample, batch: int, seed: int, rank: int, step: int) -> dict[s
 
 
 def _batches(cache: SceneCache, scenes: list[Path], tc: TrainConfig, start: int, rank: int):
-    """Yield the batches of steps ``start, start + 1, ...`` in order: drawn here, or by ``tc.workers`` spawned
+    """Yield ``(step, batch)`` for steps ``start .. tc.steps - 1`` in order: drawn here, or by ``tc.workers`` spawned
     processes at most ``2 * workers`` steps ahead (the same batches: each is a pure function of its step)."""
     if tc.workers <= 0:
         for step in range(start, tc.steps):
-            yield draw_batch(cache, tc.sample, tc.batch, tc.seed, step, rank)
+            yield step, draw_batch(cache, tc.sample, tc.batch, tc.seed, step, rank)
         return
     import collections
     import functools
@@ -169,18 +171,18 @@ def _batches(cache: SceneCache, scenes: list[Path], tc: TrainConfig, start: int,
 
     work = functools.partial(_worker_batch, tc.sample, tc.batch, tc.seed, rank)
     with multiprocessing.get_context("spawn").Pool(tc.workers, _worker_init, (scenes,)) as pool:
-        pending: collections.deque = collections.deque()
+        pending: collections.deque = collections.deque()  # (step, async result), oldest first
         upcoming = iter(range(start, tc.steps))
         for step in upcoming:
-            pending.append(pool.apply_async(work, (step,)))
+            pending.append((step, pool.apply_async(work, (step,))))
             if len(pending) >= 2 * tc.workers:
                 break
         while pending:
-            result = pending.popleft().get()
+            step, result = pending.popleft()
             nxt = next(upcoming, None)
             if nxt is not None:
-                pending.append(pool.apply_async(work, (nxt,)))
-            yield result
+                pending.append((nxt, pool.apply_async(work, (nxt,))))
+            yield step, result.get()
 
 
 @contextmanager
@@ -313,7 +315,7 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
     stopped = False
     batches = _batches(cache, scenes, tc, start, rank)
     with _stop_requests(enabled=not ddp) as stop:
-        for step, drawn in zip(range(start, tc.steps), batches):
+        for step, drawn in batches:
             torch.manual_seed(tc.seed * 1_000_003 + step * 7919 + rank)  # dropout noise of this step
             batch = to_torch(drawn, device)
             if autocast is not None:

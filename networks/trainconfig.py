@@ -43,7 +43,8 @@ class TrainConfig:
     sample: SampleSpec = field(default_factory=SampleSpec)
     """How samples are drawn (resolution, K range, pixel samples, augmentation)."""
     val_data: str = ""
-    """Validation dataset (the fixed `--split test` set); empty = no validation."""
+    """Validation dataset that chooses ``best.safetensors`` (a `--split test` set kept apart from the reported
+    test split); empty = no validation."""
     val_scenes: int = 24
     """Validate on at most this many scenes (the first ones, always the same)."""
     val_every_s: float = 900.0
@@ -91,7 +92,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(s, name))
     p.add_argument("--no-dihedral", dest="dihedral", action="store_false",
                    help="no random mirror / 90-degree rotation augmentation")
-    p.add_argument("--val-data", default="", help="validation dataset (synthetic test split)")
+    p.add_argument("--val-data", default="",
+                   help="validation dataset that chooses the best checkpoint (a `--split test` set kept apart "
+                        "from the one you report)")
     p.add_argument("--device", default=d.device)
     p.add_argument("--bf16", action="store_true")
     p.add_argument("--save-all-ranks", action="store_true", help=argparse.SUPPRESS)
