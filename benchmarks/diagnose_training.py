@@ -1,4 +1,4 @@
-"""Two diagnostics behind the statements in docs/training.md.
+"""Diagnostics behind the statements in docs/training.md and the README's BRDF table.
 
   python benchmarks/diagnose_training.py overfit --data DATA [--init W] [--steps 60]
       Fit ONE fixed batch (B=2, K=4, 128^2, 768 pixels, the small recipe, bf16) and print its loss and mean angular
@@ -8,6 +8,9 @@
       Base-color RMSE of the best constant vs. an oracle that knows the relative albedo (ground truth divided by
       the scene's brightest pixel) and scales it by one global factor: the most an albedo predictor can gain when
       the per-image normalisation hides the absolute scale.
+  python benchmarks/diagnose_training.py constants --data DATA_TEST
+      RMSE of base color, roughness and metallic for the best constant (each map's mean: an oracle) and for
+      export's defaults (what a capture gets without a BRDF model), over every valid pixel, as validation pools them.
 """
 from __future__ import annotations
 
@@ -52,21 +55,38 @@ def overfit(data: str, init: str | None, steps: int, lr: float) -> None:
                   flush=True)
 
 
-def albedo_bound(data: str) -> None:
+def _truth(data: str) -> dict[str, list[np.ndarray]]:
+    """Per scene, the ground-truth base color (P, 3), roughness (P,) and metallic (P,) at its valid pixels (mask
+    and a unit normal), as training validation selects them."""
     from networks.data import list_scenes
 
-    truth, relative = [], []
+    out: dict[str, list[np.ndarray]] = {"base_color": [], "roughness": [], "metallic": []}
     for path in list_scenes(data):
         with np.load(Path(path) / "data.npz") as z:
             valid = z["mask"] & (np.linalg.norm(z["normal"].astype(np.float64), axis=2) > 0.5)
-            b = z["base_color"].astype(np.float64)[valid]
-        truth.append(b)
-        relative.append(b / max(b.mean(1).max(), 1e-3))
+            for key in out:
+                out[key].append(z[key].astype(np.float64)[valid])
+    return out
+
+
+def albedo_bound(data: str) -> None:
+    truth = _truth(data)["base_color"]
+    relative = [b / max(b.mean(1).max(), 1e-3) for b in truth]
     g, r = np.concatenate(truth), np.concatenate(relative)
     k = (r * g).sum() / (r * r).sum()
     const, oracle = g.std(), np.sqrt(((k * r - g) ** 2).mean())
     print(f"scenes {len(truth)}  constant RMSE {const:.4f}  relative-albedo oracle RMSE {oracle:.4f} "
           f"({1 - oracle / const:.0%} below the constant)")
+
+
+def constants(data: str) -> None:
+    from matcap.export import DEFAULTS
+
+    for key, values in _truth(data).items():
+        g = np.concatenate(values)
+        default = np.asarray(DEFAULTS[key], np.float64)
+        print(f"{key:<10}  best constant {g.mean():.3f}: RMSE {g.std():.3f}   export default "
+              f"{DEFAULTS[key]}: RMSE {np.sqrt(((g - default) ** 2).mean()):.3f}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -77,13 +97,15 @@ def main(argv: list[str] | None = None) -> int:
     o.add_argument("--init", help="start from these weights (default: random)")
     o.add_argument("--steps", type=int, default=60)
     o.add_argument("--lr", type=float, default=4e-4)
-    a = sub.add_parser("albedo-bound")
-    a.add_argument("--data", required=True)
+    for name in ("albedo-bound", "constants"):
+        sub.add_parser(name).add_argument("--data", required=True)
     args = ap.parse_args(argv)
     if args.what == "overfit":
         overfit(args.data, args.init, args.steps, args.lr)
-    else:
+    elif args.what == "albedo-bound":
         albedo_bound(args.data)
+    else:
+        constants(args.data)
     return 0
 
 
