@@ -1,6 +1,6 @@
 """Score trained weights on a synthetic split, exactly as training validation does.
 
-    python -m networks.validate WEIGHTS.safetensors DATA_TEST [--scenes N] [--json FILE]
+    python -m networks.validate WEIGHTS.safetensors DATA_TEST [--scenes N] [--pixel-samples P] [--json FILE]
 
 Prints one JSON object: mean angular error (degrees) per lighting group and over all scenes, and for a BRDF network
 the RMSE of base color, roughness and metallic next to the RMSE of the best constant prediction
@@ -16,8 +16,10 @@ import sys
 from pathlib import Path
 
 
-def score(weights: str | Path, data: str | Path, scenes: int | None = None, device: str = "cpu") -> dict:
-    """Validation numbers of ``weights`` on the first ``scenes`` scenes of ``data`` (all when None)."""
+def score(weights: str | Path, data: str | Path, scenes: int | None = None, device: str = "cpu",
+          pixel_samples: int | None = None) -> dict:
+    """Validation numbers of ``weights`` on the first ``scenes`` scenes of ``data`` (all when None), predicted in
+    sample sets of ``pixel_samples`` pixels (default: the model's)."""
     import torch
 
     from networks.checkpoint import load_model
@@ -27,8 +29,10 @@ def score(weights: str | Path, data: str | Path, scenes: int | None = None, devi
     model, config, _ = load_model(weights, device=device)
     found = list_scenes(data)
     count = len(found) if scenes is None else min(scenes, len(found))
-    result = validate(model, found, config.target, torch.device(device), count)  # validate() runs without grad
-    result = {"weights": str(weights), "target": config.target, "scenes": count, **result}
+    result = validate(model, found, config.target, torch.device(device), count,  # validate() runs without grad
+                      pixel_samples=pixel_samples)
+    result = {"weights": str(weights), "target": config.target, "scenes": count,
+              "pixel_samples": pixel_samples or config.pixel_samples, **result}
     if config.target == "brdf":
         for key in ("base_color", "roughness", "metallic"):
             const = result[f"rmse_const_{key}"]
@@ -41,11 +45,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("weights", help="our .safetensors weights (normal or BRDF network)")
     p.add_argument("data", help="a `matcap synth` dataset folder (the test split)")
     p.add_argument("--scenes", type=int, help="use the first N scenes (default: all)")
+    p.add_argument("--pixel-samples", type=int, help="pixels per sample set (default: the model's)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--json", metavar="FILE", help="also write the result to FILE")
     args = p.parse_args(argv)
     try:
-        result = score(args.weights, args.data, args.scenes, args.device)
+        result = score(args.weights, args.data, args.scenes, args.device, args.pixel_samples)
     except (ValueError, OSError) as exc:
         print(f"networks.validate: error: {exc}", file=sys.stderr)
         return 2
