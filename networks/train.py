@@ -73,10 +73,27 @@ def to_torch(batch: dict[str, np.ndarray], device) -> dict[str, torch.Tensor]:
 
 
 @torch.no_grad()
+def exposure_aligned_sse(pred: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """Squared errors of one scene's base color once its unknown exposure is factored out.
+
+    pred, truth: (P, 3) linear base color of the scene's valid pixels. Returns (SSE of ``s * pred`` with the
+    least-squares scale ``s``, SSE of the best constant grey for this scene, i.e. the truth's mean): each side
+    gets exactly one free parameter per scene.
+    """
+    pred, truth = np.asarray(pred, np.float64), np.asarray(truth, np.float64)
+    if pred.shape != truth.shape:
+        raise ValueError(f"pred {pred.shape} and truth {truth.shape} differ")
+    scale = float((pred * truth).sum() / max(float((pred * pred).sum()), 1e-12))
+    return float(((scale * pred - truth) ** 2).sum()), float(((truth - truth.mean()) ** 2).sum())
+
+
 def validate(model, scenes: list[Path], target: str, device, max_scenes: int, seed: int = 0,
              pixel_samples: int | None = None) -> dict:
     """Mean angular error (degrees) per lighting group, and BRDF RMSEs (pooled over pixels, with the RMSE of the
-    best constant prediction beside them), on the first ``max_scenes`` scenes.
+    best constant prediction beside them), on the first ``max_scenes`` scenes. Base color is also scored
+    exposure-aligned (``rmse_base_color_exposure_aligned``): the network sees images normalised per image, so the
+    absolute albedo scale of a scene is not observable; there the prediction and the per-scene constant each get
+    their best single scale per scene.
 
     Each scene is predicted with its 10 stored images and its ground-truth mask, every pixel, in sample sets of
     ``pixel_samples`` pixels (default: the model's).
@@ -89,6 +106,7 @@ def validate(model, scenes: list[Path], target: str, device, max_scenes: int, se
     keys = ("base_color", "roughness", "metallic")
     sse = dict.fromkeys(keys, 0.0)  # pooled over every valid pixel (and channel) of every scene
     s1, s2, count = dict.fromkeys(keys, 0.0), dict.fromkeys(keys, 0.0), dict.fromkeys(keys, 0)
+    sse_aligned = [0.0, 0.0]  # base color: prediction and per-scene constant, each with its best scene scale
     for path in scenes[:max_scenes]:
         scene = load_scene(path)
         try:
@@ -113,6 +131,10 @@ def validate(model, scenes: list[Path], target: str, device, max_scenes: int, se
                 s1[key] += float(truth.sum())
                 s2[key] += float((truth**2).sum())
                 count[key] += truth.size
+            # exposure-aligned base color: with the light intensity unknown, albedo is only defined up to one
+            # scale per scene; give the prediction and the constant baseline one free scale each
+            for i, value in enumerate(exposure_aligned_sse(out["base_color"][valid], scene["base_color"][valid])):
+                sse_aligned[i] += value
     if was_training:
         model.train()
     result = {f"mae_{g}": float(np.mean(v)) for g, v in sorted(groups.items())}
@@ -124,6 +146,9 @@ def validate(model, scenes: list[Path], target: str, device, max_scenes: int, se
             # the best constant prediction (the mean) has an RMSE equal to the standard deviation of the truth
             result[f"rmse_const_{key}"] = math.sqrt(max(s2[key] / n - (s1[key] / n) ** 2, 0.0))
         result["rmse_mean"] = float(np.mean([result[f"rmse_{k}"] for k in keys]))
+        n = max(count["base_color"], 1)
+        result["rmse_base_color_exposure_aligned"] = math.sqrt(sse_aligned[0] / n)
+        result["rmse_const_base_color_exposure_aligned"] = math.sqrt(sse_aligned[1] / n)
     return result
 
 

@@ -5,7 +5,9 @@
 Prints one JSON object: mean angular error (degrees) per lighting group and over all scenes, and for a BRDF network
 the RMSE of base color, roughness and metallic next to the RMSE of the best constant prediction
 (``rmse_const_*``, the standard deviation of the truth) and the relative improvement over it (``gain_*``, the
-issue-4 target is >= 0.30 for each map). Every scene is predicted with its stored images and ground-truth mask.
+issue-4 target is >= 0.30 for each map). Base color is also scored exposure-aligned (one free scale per scene
+for the prediction and for a per-scene constant), since per-image normalisation hides the absolute albedo scale.
+Every scene is predicted with its stored images and ground-truth mask.
 """
 from __future__ import annotations
 
@@ -37,6 +39,9 @@ def score(weights: str | Path, data: str | Path, scenes: int | None = None, devi
         for key in ("base_color", "roughness", "metallic"):
             const = result[f"rmse_const_{key}"]
             result[f"gain_{key}"] = 1.0 - result[f"rmse_{key}"] / const if const > 0 else float("nan")
+        const = result["rmse_const_base_color_exposure_aligned"]
+        result["gain_base_color_exposure_aligned"] = (
+            1.0 - result["rmse_base_color_exposure_aligned"] / const if const > 0 else float("nan"))
     return result
 
 

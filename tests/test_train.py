@@ -193,6 +193,9 @@ def test_brdf_validation_reports_rmse_and_constant_baseline(tiny_dataset, tiny_v
     # the numpy scenes have roughness 1 and metallic 0 everywhere: the constant baseline is exact there
     assert val["rmse_const_roughness"] < 1e-3 and val["rmse_const_metallic"] < 1e-3
     assert val["rmse_const_base_color"] > 0.01
+    # one free scale per scene can only help (scale 1 is among the candidates)
+    assert 0 <= val["rmse_base_color_exposure_aligned"] <= val["rmse_base_color"] + 1e-9
+    assert val["rmse_const_base_color_exposure_aligned"] > 0
     # the stand-alone scorer gives the same numbers from the saved weights, plus the gain over the constant
     from networks.validate import main as validate_main
 
@@ -205,3 +208,21 @@ def test_brdf_validation_reports_rmse_and_constant_baseline(tiny_dataset, tiny_v
     assert abs(scored["rmse_base_color"] - val["rmse_base_color"]) < 1e-6
     assert scored["gain_base_color"] == pytest.approx(1 - val["rmse_base_color"] / val["rmse_const_base_color"])
     assert validate_main([str(tmp_path / "missing.safetensors"), str(tiny_val_dataset)]) == 2
+
+
+def test_exposure_aligned_base_color_factors_out_one_scale_per_scene():
+    from networks.train import exposure_aligned_sse
+
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(0.0, 1.0, (50, 3))
+    # a prediction off by an exposure only scores zero; the constant side is the spread around the scene mean
+    sse, const = exposure_aligned_sse(0.37 * truth, truth)
+    assert sse < 1e-20
+    np.testing.assert_allclose(const, ((truth - truth.mean()) ** 2).sum(), rtol=1e-12)
+    # any other prediction: the least-squares scale beats (or ties) every other scale
+    pred = truth + rng.normal(0, 0.1, truth.shape)
+    sse, _ = exposure_aligned_sse(pred, truth)
+    for s in (0.5, 0.9, 1.0, 1.1, 2.0):
+        assert sse <= ((s * pred - truth) ** 2).sum() + 1e-12
+    with pytest.raises(ValueError, match=r"\(50, 3\)"):
+        exposure_aligned_sse(pred[:, :2], truth)
