@@ -72,7 +72,6 @@ def to_torch(batch: dict[str, np.ndarray], device) -> dict[str, torch.Tensor]:
     return out
 
 
-@torch.no_grad()
 def exposure_aligned_sse(pred: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     """Squared errors of one scene's base color once its unknown exposure is factored out.
 
@@ -87,6 +86,7 @@ def exposure_aligned_sse(pred: np.ndarray, truth: np.ndarray) -> tuple[float, fl
     return float(((scale * pred - truth) ** 2).sum()), float(((truth - truth.mean()) ** 2).sum())
 
 
+@torch.no_grad()
 def validate(model, scenes: list[Path], target: str, device, max_scenes: int, seed: int = 0,
              pixel_samples: int | None = None) -> dict:
     """Mean angular error (degrees) per lighting group, and BRDF RMSEs (pooled over pixels, with the RMSE of the
