@@ -1,9 +1,9 @@
 """Diagnostics behind the statements in docs/training.md and the README's BRDF table.
 
-  python benchmarks/diagnose_training.py overfit --data DATA [--init W] [--steps 60]
+  python benchmarks/diagnose_training.py overfit --data DATA [--init W] [--steps 60] [--target normal|brdf]
       Fit ONE fixed batch (B=2, K=4, 128^2, 768 pixels, the small recipe, bf16) and print its loss and mean angular
-      error every 5 steps: if this does not fall, the optimisation is broken; if it does while the training loss
-      stalls, the model is short of data and steps.
+      error (BRDF: RMSE of base color, roughness, metallic) every 5 steps: if this does not fall, the optimisation
+      is broken; if it does while validation stalls, the model is short of data and steps.
   python benchmarks/diagnose_training.py albedo-bound --data DATA_TEST
       Base-color RMSE of the best constant vs. an oracle that knows the relative albedo (ground truth divided by
       the scene's brightest pixel) and scales it by one global factor: the most an albedo predictor can gain when
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 
-def overfit(data: str, init: str | None, steps: int, lr: float) -> None:
+def overfit(data: str, init: str | None, steps: int, lr: float, target: str = "normal") -> None:
     import torch
 
     from networks.checkpoint import load_model
@@ -32,27 +32,34 @@ def overfit(data: str, init: str | None, steps: int, lr: float) -> None:
 
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    cfg = dataclasses.replace(get_config("small", "normal"), canonical_resolution=128, dropout=0.0, pixel_samples=768)
+    cfg = dataclasses.replace(get_config("small", target), canonical_resolution=128, dropout=0.0, pixel_samples=768)
     model = SDMUniPS(cfg)
     if init:
-        model.load_state_dict(load_model(init)[0].state_dict())
+        model.load_state_dict(load_model(init)[0].state_dict(), strict=target == "normal")
     model.train()
     opt = torch.optim.AdamW(model.parameters(), lr, weight_decay=0.05)
     spec = SampleSpec(resolution=128, min_images=4, max_images=4, pixel_samples=768)
     batch = to_torch(draw_batch(SceneCache(list_scenes(data)), spec, 2, 0, 12345), "cpu")
-    truth = gather_pixels(batch["normal"], batch["pixel_index"])
+    truth = {key: gather_pixels(batch[key], batch["pixel_index"])
+             for key in ("normal", "base_color", "roughness", "metallic")}
     for step in range(steps):
         with torch.autocast("cpu", dtype=torch.bfloat16):
             pred = model(batch["images"], batch["input_mask"], batch["pixel_index"])
-        loss, _ = compute_loss(pred, batch, "normal")
+        loss, _ = compute_loss(pred, batch, target)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         if step % 5 == 0 or step == steps - 1:
-            cos = (pred["normal"].detach().float() * truth).sum(-1).clamp(-1, 1)
-            print(f"step {step:3d}  loss {float(loss):.4f}  MAE {float(torch.rad2deg(torch.acos(cos)).mean()):.2f} deg",
-                  flush=True)
+            if target == "normal":
+                cos = (pred["normal"].detach().float() * truth["normal"]).sum(-1).clamp(-1, 1)
+                score = f"MAE {float(torch.rad2deg(torch.acos(cos)).mean()):.2f} deg"
+            else:
+                score = "  ".join(
+                    f"{key} RMSE {float((pred[key].detach().float().reshape(truth[key].shape) - truth[key]).pow(2).mean().sqrt()):.3f}"
+                    f" (const {float(truth[key].std(unbiased=False)):.3f})"
+                    for key in ("base_color", "roughness", "metallic"))
+            print(f"step {step:3d}  loss {float(loss.detach()):.4f}  {score}", flush=True)
 
 
 def _truth(data: str) -> dict[str, list[np.ndarray]]:
@@ -97,11 +104,12 @@ def main(argv: list[str] | None = None) -> int:
     o.add_argument("--init", help="start from these weights (default: random)")
     o.add_argument("--steps", type=int, default=60)
     o.add_argument("--lr", type=float, default=4e-4)
+    o.add_argument("--target", choices=("normal", "brdf"), default="normal")
     for name in ("albedo-bound", "constants"):
         sub.add_parser(name).add_argument("--data", required=True)
     args = ap.parse_args(argv)
     if args.what == "overfit":
-        overfit(args.data, args.init, args.steps, args.lr)
+        overfit(args.data, args.init, args.steps, args.lr, args.target)
     elif args.what == "albedo-bound":
         albedo_bound(args.data)
     else:
