@@ -1,10 +1,15 @@
 """Throughput of `matcap synth` (train split): scenes/hour at a given resolution and spp.
 
     python benchmarks/bench_synth.py [--scenes 8] [--resolution 256] [--spp 16] [--assets ../shared/data]
+    python benchmarks/bench_synth.py --basis-ab 6 --resolution 128 --assets ../shared/data
 
 Reports wall-clock scenes/hour and a CPU-time estimate (process CPU seconds / available cores), which is the
 figure to trust when other jobs share the machine. The first scene (kernel compilation, asset loading) is
 timed separately. Nothing is kept: the dataset goes to a temporary folder.
+
+``--basis-ab N`` times only the basis renders of N train-split scenes, three rounds each way: one loaded Mitsuba
+scene per kind of light whose emitter is updated between lights (what `matcap synth` does) against a freshly
+loaded scene per light (what it did before session 4).
 """
 from __future__ import annotations
 
@@ -19,6 +24,41 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
+def basis_ab(scenes: int, resolution: int, spp: int, assets: str | None, seed: int) -> None:
+    from matcap.synth import AssetCache, catalog_from_dir
+    from renderers.synth import DELTA_SPP_FACTOR, SceneRenderer
+    from scenes.lights import EnvironmentLight
+    from scenes.synth_build import build_render_objects
+    from scenes.synth_spec import generate_scene
+
+    catalog, cache = catalog_from_dir(assets), AssetCache(assets)
+    prepared = []
+    for k in range(scenes):
+        spec = generate_scene(seed, "train", k, resolution, catalog, 0)
+        meshes, sets, envs = cache.for_spec(spec)
+        prepared.append((build_render_objects(spec, meshes, sets), spec.lights(), envs))
+    delta_spp = max(1, round(spp * DELTA_SPP_FACTOR))
+
+    def run(reuse: bool) -> float:
+        t0 = time.perf_counter()
+        for objects, lights, envs in prepared:
+            r = SceneRenderer(objects, resolution, spp, seed)
+            for light in lights:
+                if not reuse:
+                    r._single.clear()  # forget the loaded scene: the next render loads a fresh one
+                r.render([light], envs, spp=None if isinstance(light, EnvironmentLight) else delta_spp)
+        return time.perf_counter() - t0
+
+    run(True), run(False)  # warm-up: kernel compilation, asset loading
+    rows = [(run(True), run(False)) for _ in range(3)]
+    print(f"| basis renders of {scenes} scenes at {resolution}², {spp} spp | reused scene | fresh scene per light |")
+    print("|---|---:|---:|")
+    for k, (a, b) in enumerate(rows):
+        print(f"| round {k + 1} | {a:.2f} s | {b:.2f} s |")
+    a, b = (sum(x) / len(rows) for x in zip(*rows))
+    print(f"| mean | {a:.2f} s | {b:.2f} s ({1 - a / b:.0%} saved) |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--scenes", type=int, default=8)
@@ -26,7 +66,11 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--assets", default=None)
     ap.add_argument("--seed", type=int, default=123)
+    ap.add_argument("--basis-ab", type=int, metavar="N", help="time basis renders only: reused vs fresh scenes")
     args = ap.parse_args()
+    if args.basis_ab:
+        basis_ab(args.basis_ab, args.resolution, args.spp, args.assets, args.seed)
+        return
 
     from matcap.synth import run_synth
 

@@ -45,6 +45,24 @@ def test_combined_basis_equals_direct_render():
     assert np.sqrt(((_block(basis[0] * 0.7) - b) ** 2).mean()) / b.mean() > 0.2
 
 
+def test_reused_scene_renders_what_a_fresh_one_does():
+    """Basis lights of one kind share a loaded scene (only the emitter is updated): same pixels as a new scene."""
+    objs = _objects()
+    lights = [DirectionalLight((0.3, 0.4, 0.866), (3.0, 2.0, 1.0)), DirectionalLight((-0.5, 0.1, 0.86)),
+              PointLight((-0.8, 0.5, 2.5), (20.0, 20.0, 20.0)), PointLight((0.9, -0.4, 2.0), (5.0, 9.0, 9.0)),
+              EnvironmentLight("procedural:3", 40.0), EnvironmentLight("procedural:3", 160.0, scale=0.5),
+              EnvironmentLight("procedural:4", 10.0)]
+    env = {**ENV, "procedural:4": P.procedural_sky(4, 32)}
+    shared = SceneRenderer(objs, 24, spp=4, seed=3)
+    reused = [shared.render([light], env) for light in lights]
+    assert len(shared._single) == 4  # directional, point, and one per env map
+    for light, image in zip(lights, reused):
+        fresh = SceneRenderer(objs, 24, spp=4, seed=3).render([light], env)
+        np.testing.assert_allclose(image, fresh, rtol=1e-5, atol=1e-6)
+    # and the lights did change between renders
+    assert np.abs(reused[0] - reused[1]).mean() > 0.01 and np.abs(reused[4] - reused[5]).mean() > 0.01
+
+
 def test_ground_truth_and_determinism():
     objs = _objects()
     r1 = render_scene(objs, LIGHTS[:2], ENV, 32, spp=4, seed=5)
