@@ -110,7 +110,7 @@ def validate(model, scenes: list[Path], target: str, device, max_scenes: int, se
     for path in scenes[:max_scenes]:
         scene = load_scene(path)
         try:
-            group = json.loads((path / "spec.json").read_text()).get("lighting_group", "all")
+            group = json.loads((path / "spec.json").read_text()).get("lighting_group") or "all"
         except (OSError, json.JSONDecodeError):
             group = "all"
         mask = scene["mask"].astype(bool)
