@@ -11,6 +11,10 @@
   python benchmarks/diagnose_training.py constants --data DATA_TEST
       RMSE of base color, roughness and metallic for the best constant (each map's mean: an oracle) and for
       export's defaults (what a capture gets without a BRDF model), over every valid pixel, as validation pools them.
+  python benchmarks/diagnose_training.py self-calibrated --data DATA_TEST [--init W]
+      A rejected refinement: lights estimated from the network's normals, normals re-solved by robust least squares
+      with them and averaged with the network's. Prints the mean angular error per lighting group of the network
+      alone, the re-solved normals and the average (docs/training.md, session 4).
 """
 from __future__ import annotations
 
@@ -96,6 +100,64 @@ def constants(data: str) -> None:
               f"{DEFAULTS[key]}: RMSE {np.sqrt(((g - default) ** 2).mean()):.3f}")
 
 
+def _lights_from_normals(obs: np.ndarray, normals: np.ndarray, weight: np.ndarray, rounds: int = 6) -> np.ndarray:
+    """Directional lights (K, 3), intensity in the length, that explain grey observations ``obs`` (K, P) with the
+    fixed unit ``normals`` (P, 3): alternating least squares for the lights and the per-pixel albedo, on the
+    observations that ``weight`` (K, P) keeps."""
+    albedo = np.ones(obs.shape[1])
+    lights = np.zeros((obs.shape[0], 3))
+    for _ in range(rounds):
+        for k in range(obs.shape[0]):
+            root = np.sqrt(weight[k])
+            lights[k] = np.linalg.lstsq(albedo[:, None] * normals * root[:, None], obs[k] * root, rcond=None)[0]
+        shading = np.maximum(lights @ normals.T, 0.0)
+        albedo = np.maximum((weight * shading * obs).sum(0) / np.maximum((weight * shading**2).sum(0), 1e-12), 0.0)
+    return lights
+
+
+def self_calibrated(data: str, init: str) -> None:
+    import json
+
+    import torch
+
+    from matcap.evaluation.baselines import robust_keep_weights
+    from networks.checkpoint import load_model
+    from networks.data import list_scenes, load_scene
+    from networks.inference import predict
+    from networks.preprocess import normalize_images
+
+    model = load_model(init)[0].eval()
+    errors: dict[str, dict[str, list[float]]] = {}
+    for path in list_scenes(data):
+        scene = load_scene(path)
+        mask = scene["mask"].astype(bool)
+        truth = scene["normal"].astype(np.float64)
+        valid = mask & (np.linalg.norm(truth, axis=2) > 0.5)
+        images = torch.from_numpy(scene["images"].astype(np.float32)).permute(0, 3, 1, 2)
+        m = torch.from_numpy(mask)
+        net = predict(model, normalize_images(images, m.float().unsqueeze(0)), m, seed=0)["normal"][valid]
+        net = net.astype(np.float64) / np.maximum(np.linalg.norm(net, axis=1, keepdims=True), 1e-12)
+        obs = scene["images"].astype(np.float64)[:, valid].mean(2)
+        obs /= max(obs.max(), 1e-12)
+        keep = robust_keep_weights(obs, 0.3, 0.1)
+        lights = _lights_from_normals(obs, net, keep)
+        keep = keep * (lights @ net.T > 0)  # attached shadows under the estimated lights
+        a = np.einsum("kp,ki,kj->pij", keep, lights, lights) + 1e-9 * np.eye(3)
+        g = np.linalg.solve(a, ((keep * obs).T @ lights)[:, :, None])[:, :, 0]
+        solved = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
+        mean = solved + net
+        mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+        gt = truth[valid] / np.linalg.norm(truth[valid], axis=1, keepdims=True)
+        group = json.loads((path / "spec.json").read_text()).get("lighting_group") or "all"
+        for name, n in (("network", net), ("re-solved", solved), ("average", mean)):
+            err = np.degrees(np.arccos(np.clip((n * gt).sum(1), -1, 1))).mean()
+            errors.setdefault(group, {}).setdefault(name, []).append(float(err))
+    print("| group | scenes | network | re-solved | average |")
+    print("|---|---:|---:|---:|---:|")
+    for group, row in sorted(errors.items()):
+        print(f"| {group} | {len(row['network'])} | " + " | ".join(f"{np.mean(row[k]):.2f}" for k in row) + " |")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="what", required=True)
@@ -107,9 +169,14 @@ def main(argv: list[str] | None = None) -> int:
     o.add_argument("--target", choices=("normal", "brdf"), default="normal")
     for name in ("albedo-bound", "constants"):
         sub.add_parser(name).add_argument("--data", required=True)
+    c = sub.add_parser("self-calibrated")
+    c.add_argument("--data", required=True)
+    c.add_argument("--init", default="networks/weights/normal_small.safetensors", help="normal network weights")
     args = ap.parse_args(argv)
     if args.what == "overfit":
         overfit(args.data, args.init, args.steps, args.lr, args.target)
+    elif args.what == "self-calibrated":
+        self_calibrated(args.data, args.init)
     elif args.what == "albedo-bound":
         albedo_bound(args.data)
     else:
