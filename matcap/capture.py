@@ -19,7 +19,7 @@ import numpy as np
 
 from matcap import imageio
 from matcap.errors import MatcapError
-from scenes.materialmaps import MaterialMaps
+from scenes.materialmaps import MaterialMaps, check_constant
 
 #: Files in a capture folder that are not photos: masks and ground-truth maps.
 _SKIP = re.compile(
@@ -382,14 +382,22 @@ def capture(
     mask: str | os.PathLike | None = None,
     linear: bool = False,
     overwrite: bool = False,
+    constants: dict[str, float] | None = None,
     **estimate_kwargs,
 ) -> tuple[MaterialMaps, Path]:
-    """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`)."""
+    """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`).
+
+    ``constants`` (e.g. ``{"metallic": 0.0}``) replaces estimated roughness / metallic maps by constants on the mask
+    (recorded in ``capture.json`` as ``constant_maps``).
+    """
     from matcap.results import check_output_dir, write_result
 
+    constants = {name: check_constant(name, value) for name, value in (constants or {}).items()}
     check_output_dir(out, overwrite)  # fail before the expensive part
     cap = load_capture(folder, mask=mask, linear=linear)
     maps = estimate(cap.images, cap.mask, **estimate_kwargs)
+    for name, value in constants.items():
+        maps = maps.with_constant(name, value)
     used = [cap.files[i] for i in maps.meta["images_used"]]
     maps.meta.update(
         {
@@ -400,7 +408,20 @@ def capture(
             "skipped_files": cap.skipped,
             "colour_handling": cap.colour,
             "image_size_wh": [cap.images[0].shape[1], cap.images[0].shape[0]],
+            "constant_maps": {name: float(value) for name, value in constants.items()},
         }
     )
     write_result(maps, out, overwrite=overwrite)
     return maps, Path(out)
+
+
+def parse_constants(items: list[str] | None) -> dict[str, float]:
+    """``["metallic=0", "roughness=0.4"]`` -> ``{"metallic": 0.0, "roughness": 0.4}`` (``--constant``)."""
+    out: dict[str, float] = {}
+    for item in items or []:
+        name, _, text = item.partition("=")
+        try:
+            out[name.strip()] = check_constant(name.strip(), float(text))
+        except ValueError:
+            raise MatcapError(f"--constant {item!r}: expected roughness=V or metallic=V with V in [0, 1]") from None
+    return out

@@ -69,3 +69,19 @@ class MaterialMaps:
             roughness=self.roughness if self.roughness is not None else np.full((h, w), roughness, np.float32),
             metallic=self.metallic if self.metallic is not None else np.full((h, w), metallic, np.float32),
         )
+
+    def with_constant(self, name: str, value: float) -> "MaterialMaps":
+        """A copy whose ``name`` map (``"roughness"`` or ``"metallic"``) is ``value`` on the mask and 0 off it, as
+        estimated maps are. For a map the user knows better than the network (metallic 0 for a non-metal)."""
+        value = check_constant(name, value)
+        return replace(self, **{name: np.where(self.mask, np.float32(value), np.float32(0)).astype(np.float32)})
+
+
+def check_constant(name: str, value: float) -> float:
+    """``value`` as a float if ``name`` is a map that may be set to a constant and ``value`` lies in [0, 1]."""
+    if name not in ("roughness", "metallic"):
+        raise ValueError(f"only roughness and metallic can be set to a constant, not {name!r}")
+    value = float(value)
+    if not 0.0 <= value <= 1.0:
+        raise ValueError(f"{name} must lie in [0, 1], got {value:g}")
+    return value

@@ -216,3 +216,47 @@ def test_views_average_mirrored_predictions_and_are_recorded(tiny_weights, tmp_p
     assert json.loads((tmp_path / "out" / "capture.json").read_text())["views"] == 4
     bad = run_cli("capture", str(folder), "--out", str(tmp_path / "out3"), "--weights", str(tiny_weights), "--views", "3")
     assert bad.returncode == 2 and "invalid choice" in bad.stderr
+
+
+def test_constant_maps_replace_estimates_on_the_mask(tiny_weights, tmp_path):
+    folder = sphere_capture(tmp_path / "photos")
+    out = tmp_path / "result"
+    r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet",
+                "--constant", "metallic=0", "--constant", "roughness=0.25")
+    assert r.returncode == 0, r.stderr
+    mask = imageio.read_image(out / "mask.png").pixels[..., 0] > 0
+    metallic = imageio.read_image(out / "metallic.png").pixels[..., 0]
+    roughness = imageio.read_image(out / "roughness.png").pixels[..., 0] / 65535.0  # 16-bit, linear
+    assert mask.any() and np.all(metallic == 0)
+    assert np.abs(roughness[mask] - 0.25).max() <= 0.5 / 65535 + 1e-7 and np.all(roughness[~mask] == 0)
+    info = json.loads((out / "capture.json").read_text())
+    assert info["constant_maps"] == {"metallic": 0.0, "roughness": 0.25}
+    # the estimated base color is untouched: not constant on the mask
+    base = imageio.read_image(out / "basecolor.png").pixels
+    assert base[mask].std() > 0
+
+
+@pytest.mark.parametrize("item", ["metallic=2", "albedo=0.5", "roughness", "metallic=abc"])
+def test_bad_constant_is_one_line_exit_2_before_any_work(tiny_weights, tmp_path, item):
+    folder = sphere_capture(tmp_path / "photos")
+    r = run_cli("capture", str(folder), "--out", str(tmp_path / "out"), "--weights", str(tiny_weights),
+                "--constant", item)
+    assert_one_line_error(r, f"--constant {item!r}")
+    assert not (tmp_path / "out").exists()
+
+
+def test_with_constant_numerics_and_checks():
+    from scenes.materialmaps import MaterialMaps
+
+    mask = np.zeros((3, 4), bool)
+    mask[1:, 1:3] = True
+    maps = MaterialMaps(np.dstack([np.zeros((3, 4, 2)), np.ones((3, 4))]), mask,
+                        metallic=np.full((3, 4), 0.7, np.float32))
+    out = maps.with_constant("metallic", 0.0).with_constant("roughness", 0.5)
+    assert np.all(out.metallic == 0) and out.roughness.dtype == np.float32
+    np.testing.assert_array_equal(out.roughness, np.where(mask, 0.5, 0.0))
+    assert np.all(maps.metallic == 0.7)  # a copy: the original is unchanged
+    with pytest.raises(ValueError, match="only roughness and metallic"):
+        maps.with_constant("base_color", 0.5)
+    with pytest.raises(ValueError, match=r"\[0, 1\], got 1.5"):
+        maps.with_constant("roughness", 1.5)

@@ -34,6 +34,9 @@ def register(sub) -> None:
     p.add_argument("--views", type=int, choices=(1, 2, 4, 8), default=1,
                    help="average the prediction over this many mirrored/transposed copies of the input "
                         "(test-time augmentation; costs that many times the time; default 1)")
+    p.add_argument("--constant", action="append", metavar="MAP=V",
+                   help="replace the estimated roughness or metallic map by V on the mask, e.g. metallic=0 for a "
+                        "non-metal (repeatable; recorded in capture.json)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
     p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")
@@ -45,13 +48,14 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from matcap.capture import capture
+    from matcap.capture import capture, parse_constants
     from matcap.errors import MatcapError
 
     photos = Path(args.photos)
     out = Path(args.out) if args.out else photos.resolve().parent / f"{photos.resolve().name}-matcap"
     if args.max_images is not None and args.max_images < 2:
         raise MatcapError(f"--max-images must be at least 2, got {args.max_images}")
+    constants = parse_constants(args.constant)
     if args.device.startswith("cuda"):
         import torch
 
@@ -61,6 +65,7 @@ def run(args) -> int:
         photos, out, mask=args.mask, linear=args.linear, overwrite=args.overwrite,
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
+        constants=constants,
     )
     t = maps.meta["timings"]
     print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "
