@@ -187,6 +187,27 @@ def test_cli_from_result_folder(tmp_path, capsys):
     assert main(["export", str(tmp_path / "nothing"), "--out", str(tmp_path / "t2")]) == 2
 
 
+def test_cli_constant_maps(tmp_path, capsys):
+    from matcap.cli import main
+    from matcap.results import read_result, write_result
+
+    maps = random_maps(7, height=None)
+    write_result(maps, tmp_path / "res")
+    before = (tmp_path / "res" / "metallic.png").read_bytes()
+    assert main(["export", str(tmp_path / "res"), "--out", str(tmp_path / "tex"), "--no-glb", "--no-ao",
+                 "--constant", "metallic=0", "--constant", "roughness=0.5"]) == 0
+    back = read_texture_set(tmp_path / "tex" / "res.json")  # named after the result folder, as without --constant
+    assert np.all(back.metallic[maps.mask] == 0)
+    assert np.abs(back.roughness[maps.mask] - 0.5).max() <= Q16
+    # base color and normals come from the result as before; the result folder itself is not touched
+    assert np.abs(linear_to_srgb(back.base_color) - linear_to_srgb(maps.base_color)).max() <= Q8 + 1e-4
+    assert (tmp_path / "res" / "metallic.png").read_bytes() == before
+    assert read_result(tmp_path / "res").metallic[maps.mask].std() > 0.1
+    capsys.readouterr()
+    assert main(["export", str(tmp_path / "res"), "--out", str(tmp_path / "t2"), "--constant", "metal=0"]) == 2
+    assert "--constant 'metal=0'" in capsys.readouterr().err
+
+
 def test_cli_choices_match_library_tables():
     from matcap.commands.export import HEIGHT_METHODS, PRESET_NAMES
     from matcap.height import METHODS

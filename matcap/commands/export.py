@@ -35,6 +35,9 @@ def register(sub) -> None:
                    help="tangent space relative to the mean surface normal (sample photographed at an angle) "
                         "instead of the camera")
     p.add_argument("--no-glb", action="store_true", help="do not write NAME.glb")
+    p.add_argument("--constant", action="append", metavar="MAP=V",
+                   help="export roughness or metallic as the constant V on the mask, e.g. metallic=0 for a "
+                        "non-metal (repeatable; the result folder is not changed)")
     p.add_argument("--overwrite", action="store_true", help="replace files of an earlier export with the same name")
     p.set_defaults(func=run)
 
@@ -49,8 +52,18 @@ def run(args) -> int:
         raise MatcapError(f"{args.result}: no such result folder")
     if args.mesh and args.no_height:
         raise MatcapError("--mesh needs the height map; drop --no-height")
+    source = args.result
+    if args.constant:
+        from matcap.capture import parse_constants
+        from matcap.results import read_result
+
+        constants = parse_constants(args.constant)
+        source = read_result(args.result)
+        for key, value in constants.items():
+            source = source.with_constant(key, value)
+        source.meta["constant_maps"] = {**source.meta.get("constant_maps", {}), **constants}
     paths = export(
-        args.result, args.out, name=args.name, preset=args.preset, normal=args.normal, height=not args.no_height,
+        source, args.out, name=args.name or Path(args.result).resolve().name, preset=args.preset, normal=args.normal, height=not args.no_height,
         mesh=args.mesh, overwrite=args.overwrite, glb=not args.no_glb, height_method=args.height_method,
         frame="fit" if args.fit_frame else "camera", occlusion=not args.no_ao, ao_radius=args.ao_radius,
     )
