@@ -421,6 +421,7 @@ def export(
         "height": height_info,
         "occlusion": occlusion_info,
         "model": provenance(maps.meta),
+        "constant_maps": dict(maps.meta.get("constant_maps") or {}),  # maps set by hand (--constant)
     }
     imageio.write_text_atomic(paths["json"], json.dumps(info, indent=2) + "\n")
     return {k: str(p) for k, p in paths.items()}

@@ -202,6 +202,8 @@ def test_cli_constant_maps(tmp_path, capsys):
     # base color and normals come from the result as before; the result folder itself is not touched
     assert np.abs(linear_to_srgb(back.base_color) - linear_to_srgb(maps.base_color)).max() <= Q8 + 1e-4
     assert (tmp_path / "res" / "metallic.png").read_bytes() == before
+    info = json.loads((tmp_path / "tex" / "res.json").read_text())
+    assert info["constant_maps"] == {"metallic": 0.0, "roughness": 0.5}
     assert read_result(tmp_path / "res").metallic[maps.mask].std() > 0.1
     capsys.readouterr()
     assert main(["export", str(tmp_path / "res"), "--out", str(tmp_path / "t2"), "--constant", "metal=0"]) == 2
