@@ -162,12 +162,12 @@ def render(
     """Render ``maps`` under ``lights``: (H, W, 3) linear float32 radiance, black where ``maps.mask`` is False."""
     import mitsuba as mi
 
-    from renderers.variant import choose_variant
+    from renderers.variant import choose_variant, render_array
 
     choose_variant()
     scene_dict = build_scene(maps, lights, envmaps, spp, size, seed=seed, specular=specular)
     scene = mi.load_dict(scene_dict)
-    img = np.array(mi.render(scene, spp=int(spp), seed=int(seed)), dtype=np.float32)[..., :3]
+    img = render_array(scene, spp=spp, seed=seed)[..., :3]
     height, width = img.shape[:2]
     img = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)
     img *= mask_coverage(maps.mask, width, height)[..., None]

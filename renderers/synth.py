@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from renderers.emitters import emitter_dict
+from renderers.variant import render_array
 from scenes.lights import EnvironmentLight, Light
 from scenes.synth_build import RenderObject, finalize_normals
 
@@ -138,8 +139,7 @@ class SceneRenderer:
             for k, (light, w) in enumerate(zip(lights, weights)):
                 desc[f"light_{k:02d}"] = _emitter(light, envmaps, w)
             scene = mi.load_dict(desc)
-        img = mi.render(scene, integrator=self.integrator, spp=int(spp or self.spp), seed=self.seed)
-        return np.array(img, dtype=np.float32)[..., :3]
+        return render_array(scene, self.integrator, spp=spp or self.spp, seed=self.seed)[..., :3]
 
     def _single_light_scene(self, light: Light, envmaps: dict[str, np.ndarray], weight: float):
         mi = self.mi
@@ -164,12 +164,12 @@ class SceneRenderer:
         sensor = _sensor(mi, self.resolution, 1, self.seed, centre=True)
         aov = mi.load_dict({"type": "aov", "aovs": "nn:sh_normal,ng:geo_normal,alb:albedo,dd:depth"})
         scene = mi.load_dict({"type": "scene", "sensor": sensor, **self.shapes})
-        a = np.array(mi.render(scene, integrator=aov, spp=1, seed=self.seed), dtype=np.float32)
+        a = render_array(scene, aov, spp=1, seed=self.seed)
         param_shapes = {name: _make_mesh(mi, name, o, _params_as_albedo(mi, o))
                         for (name, _), o in zip(self.shapes.items(), self.objects)}
         scene2 = mi.load_dict({"type": "scene", "sensor": sensor, **param_shapes})
         aov2 = mi.load_dict({"type": "aov", "aovs": "alb:albedo,dd:depth"})
-        b = np.array(mi.render(scene2, integrator=aov2, spp=1, seed=self.seed), dtype=np.float32)
+        b = render_array(scene2, aov2, spp=1, seed=self.seed)
         hit = a[..., 9] > 0
         hit2 = b[..., 3] > 0
         normal, stats = finalize_normals(a[..., 0:3], a[..., 3:6], hit)

@@ -48,3 +48,20 @@ def choose_variant(prefer: str | None = None, quiet: bool = False) -> str:
         )
     mi.set_variant(_chosen)
     return _chosen
+
+
+def render_array(scene, integrator=None, *, spp: int, seed: int = 0):
+    """``mi.render`` evaluated into a float32 numpy array (H, W, C); Ctrl-C raises ``KeyboardInterrupt``.
+
+    During a render Mitsuba takes SIGINT itself: it cancels the integrator, logs "winding down" and returns a
+    partially rendered image, and Python never sees the interrupt. A partial image must not be used (or saved as
+    training data), so when the integrator reports that it was cancelled this raises ``KeyboardInterrupt``.
+    """
+    import mitsuba as mi
+    import numpy as np
+
+    integrator = integrator if integrator is not None else scene.integrator()
+    image = np.array(mi.render(scene, integrator=integrator, spp=int(spp), seed=int(seed)), dtype=np.float32)
+    if integrator.should_stop():
+        raise KeyboardInterrupt("rendering interrupted")
+    return image

@@ -145,3 +145,33 @@ def test_finalize_normals_flips_back_faces_and_clamps():
     assert np.allclose(n[0, 1], [1, 0, 0], atol=1e-6)
     assert np.allclose(np.linalg.norm(n[0, :3], axis=1), 1) and np.all(n[0, 3] == 0)
     assert stats["back_face_fraction"] == pytest.approx(1 / 3)
+
+
+def test_ctrl_c_during_a_render_raises_instead_of_returning_a_partial_image(monkeypatch):
+    """Mitsuba takes SIGINT during a render: it cancels the integrator and returns early. Simulate exactly that
+    (the real render, then the cancel its signal handler would make) and expect KeyboardInterrupt, not an image."""
+    import mitsuba as mi
+
+    from renderers.variant import render_array
+
+    r = SceneRenderer(_objects(), 16, spp=2, seed=0)
+    normal = r.render([LIGHTS[0]], ENV)  # not interrupted: an image
+    assert normal.shape == (16, 16, 3) and normal.mean() > 0
+    real_render = mi.render
+
+    def render_then_cancel(scene, integrator=None, **kw):
+        image = real_render(scene, integrator=integrator, **kw)
+        (integrator or scene.integrator()).cancel()  # what Mitsuba's SIGINT handler does mid-render
+        return image
+
+    monkeypatch.setattr(mi, "render", render_then_cancel)
+    with pytest.raises(KeyboardInterrupt):
+        r.render([LIGHTS[1]], ENV)
+    with pytest.raises(KeyboardInterrupt):
+        r.ground_truth()
+    monkeypatch.setattr(mi, "render", real_render)
+    scene = mi.load_dict({"type": "scene", "sensor": {"type": "orthographic", "film": {"type": "hdrfilm", "width": 4,
+                                                                                       "height": 4}},
+                          "shape": {"type": "rectangle"}, "light": {"type": "constant"},
+                          "integrator": {"type": "path"}})
+    assert render_array(scene, spp=1).shape == (4, 4, 3)  # the scene's own integrator, nothing cancelled
