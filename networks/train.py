@@ -259,16 +259,27 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
 
     torch.manual_seed(tc.seed)
     config = get_config(tc.preset, tc.target)
+    src, init_config = (load_model(init, device="cpu")[:2]) if init else (None, None)
     overrides = {"pixel_samples": tc.sample.pixel_samples}  # inference uses the sample-set size it was trained with
+    # canonical resolution and dropout: the command line's, else those of the weights we start from, else the preset's
     if tc.canonical_resolution:
         overrides["canonical_resolution"] = tc.canonical_resolution
+    elif init_config is not None:
+        overrides["canonical_resolution"] = init_config.canonical_resolution
     if tc.dropout >= 0:
         overrides["dropout"] = tc.dropout
+    elif init_config is not None:
+        overrides["dropout"] = init_config.dropout
     config = dataclasses.replace(config, **overrides)
     config.extra["native_resolution"] = tc.sample.resolution
+    if val_scenes:  # fail now, not at the first validation an hour in
+        side = load_scene(val_scenes[0])["mask"].shape
+        if side[0] != side[1] or side[0] % config.canonical_resolution:
+            raise ValueError(f"validation images are {side[1]}x{side[0]} but the model's canonical resolution is "
+                             f"{config.canonical_resolution}: they must be square with a side that is a multiple "
+                             f"of it (--canonical-resolution)")
     model = SDMUniPS(config).to(device)
-    if init:
-        src, _, _ = load_model(init, device="cpu")
+    if src is not None:
         missing = model.load_state_dict(src.state_dict(), strict=False)
         if rank == 0:
             print(f"initialised from {init} (missing: {len(missing.missing_keys)} keys)", file=sys.stderr)

@@ -37,9 +37,9 @@ class TrainConfig:
     grad_clip: float = 1.0
     """Max global gradient norm (0 = off)."""
     canonical_resolution: int = 0
-    """Override the preset's encoder canonical resolution (0 = keep the preset's). CPU runs use 128."""
+    """Encoder canonical resolution (0 = that of the ``--init`` weights, else the preset's). CPU runs use 128."""
     dropout: float = -1.0
-    """Override the preset's attention dropout (< 0 = keep the preset's 0.1)."""
+    """Attention dropout (< 0 = that of the ``--init`` weights, else the preset's 0.1)."""
     sample: SampleSpec = field(default_factory=SampleSpec)
     """How samples are drawn (resolution, K range, pixel samples, augmentation)."""
     val_data: str = ""
@@ -78,8 +78,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--init", help="start from these weights (.safetensors) instead of random init")
     p.add_argument("--canonical-resolution", type=int, default=d.canonical_resolution,
-                   help="override the preset's canonical resolution (0 = preset's)")
-    p.add_argument("--dropout", type=float, default=d.dropout, help="override the preset's dropout (<0 = preset's)")
+                   help="encoder canonical resolution (0 = the --init weights', else the preset's)")
+    p.add_argument("--dropout", type=float, default=d.dropout,
+                   help="attention dropout (<0 = the --init weights', else the preset's)")
     for name in ("steps", "batch", "warmup_steps", "decay_every", "log_every", "seed", "threads", "workers",
                  "val_scenes"):
         p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(d, name))

@@ -226,3 +226,27 @@ def test_exposure_aligned_base_color_factors_out_one_scale_per_scene():
         assert sse <= ((s * pred - truth) ** 2).sum() + 1e-12
     with pytest.raises(ValueError, match=r"\(50, 3\)"):
         exposure_aligned_sse(pred[:, :2], truth)
+
+
+def test_init_weights_bring_their_canonical_resolution_and_dropout(tiny_dataset, tiny_val_dataset, tmp_path):
+    """Starting from weights trained at another canonical resolution / dropout keeps theirs unless overridden."""
+    import dataclasses
+
+    from networks.checkpoint import load_model, save_weights
+    from networks.config import get_config
+    from networks.model import SDMUniPS
+    from networks.train import train
+
+    cfg = dataclasses.replace(get_config("tiny", "normal"), canonical_resolution=64, dropout=0.0)
+    save_weights(tmp_path / "init.safetensors", SDMUniPS(cfg), cfg, {"name": "init"})
+    train(_tc(tiny_dataset, tmp_path / "a", steps=1), init=str(tmp_path / "init.safetensors"), progress=False)
+    _, got, _ = load_model(tmp_path / "a" / "last.safetensors")
+    assert (got.canonical_resolution, got.dropout) == (64, 0.0)
+    train(_tc(tiny_dataset, tmp_path / "b", steps=1, canonical_resolution=32), init=str(tmp_path / "init.safetensors"),
+          progress=False)
+    assert load_model(tmp_path / "b" / "last.safetensors")[1].canonical_resolution == 32
+    # validation images (64x64) that the model cannot predict at canonical resolution 128: refused before any step
+    with pytest.raises(ValueError, match="validation images are 64x64 but the model's canonical resolution is 128"):
+        train(_tc(tiny_dataset, tmp_path / "c", canonical_resolution=128, val_data=str(tiny_val_dataset)),
+              progress=False)
+    assert not (tmp_path / "c" / "checkpoint.pt").exists()
