@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import sys
 import time
 from dataclasses import dataclass, field
@@ -270,6 +271,51 @@ def _log_failure(out: Path, spec: SceneSpec, problems: list[str]) -> None:
         f.write(line + "\n")
 
 
+class ShardLock:
+    """``OUT/.lock-shard-I-of-N`` holding ``PID HOST`` while a process renders that shard: a second process on the
+    same shard would render the same scenes twice. A lock left by a process of this host that no longer exists is
+    taken over; one from another host must be deleted by hand if it is stale."""
+
+    def __init__(self, out: Path, i: int, n: int):
+        self.path = out / f".lock-shard-{i}-of-{n}"
+        self.shard = f"{i}/{n}"
+        self.text = f"{os.getpid()} {socket.gethostname()}"
+
+    def __enter__(self) -> "ShardLock":
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                pid, _, host = self.path.read_text().strip().partition(" ")
+                if host == socket.gethostname() and pid.isdigit() and not _alive(int(pid)):
+                    self.path.unlink(missing_ok=True)  # stale: its process is gone
+                    continue
+                raise MatcapError(f"shard {self.shard} of {self.path.parent} is being "
+                                  f"rendered by process {pid} on {host or '?'}; wait for it, or delete "
+                                  f"{self.path} if that process is gone") from None
+            with os.fdopen(fd, "w") as f:
+                f.write(self.text + "\n")
+            return self
+        raise MatcapError(f"cannot take {self.path}")
+
+    def __exit__(self, *exc) -> None:
+        try:
+            if self.path.read_text().strip() == self.text:
+                self.path.unlink()
+        except OSError:
+            pass
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str | None = None,
               assets=None, split: str = "train", spp: int = 16, progress: bool = True) -> dict:
     """Generate (this shard's part of) a dataset. Returns {"rendered", "skipped", "failed", "seconds"}."""
@@ -290,45 +336,50 @@ def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str
     assets_used = None if assets is None else {"meshes": len(catalog.meshes), "envmaps": len(catalog.envmaps),
                                                "textures": len(catalog.textures)}
     _check_params(out, _params(split, resolution, seed, scenes, spp, assets_used))
-    cache = AssetCache(assets)
-    todo = [k for k in range(i, scenes, n) if not (out / f"scene_{k:06d}" / "spec.json").exists()]
-    skipped = len(range(i, scenes, n)) - len(todo)
-    stats = {"rendered": 0, "skipped": skipped, "failed": 0, "redrawn": 0}
-    t0 = time.time()
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    with ShardLock(out, i, n):  # one process per shard
+        cache = AssetCache(assets)
+        todo = [k for k in range(i, scenes, n) if not (out / f"scene_{k:06d}" / "spec.json").exists()]
+        skipped = len(range(i, scenes, n)) - len(todo)
+        stats = {"rendered": 0, "skipped": skipped, "failed": 0, "redrawn": 0}
+        t0 = time.time()
+        bar = None
+        if progress:
+            from tqdm import tqdm
 
-        bar = tqdm(total=len(todo), desc=f"synth {split} shard {i}/{n}", unit="scene", file=sys.stderr)
-    try:
-        for k in todo:
-            final = out / f"scene_{k:06d}"
-            done = False
-            for attempt in range(MAX_ATTEMPTS):
-                spec = generate_scene(seed, split, k, resolution, catalog, attempt)
-                result = render_spec(spec, cache, spp)
-                if result.problems:
-                    _log_failure(out, spec, result.problems)
-                    stats["redrawn"] += 1
-                    continue
-                tmp = out / f".tmp-{final.name}-{os.getpid()}"
-                if tmp.exists():
-                    shutil.rmtree(tmp)
-                write_scene(result, tmp)
-                try:
-                    os.rename(tmp, final)
-                except OSError:  # another process finished it first
-                    shutil.rmtree(tmp, ignore_errors=True)
-                done = True
-                break
-            stats["rendered" if done else "failed"] += 1
+            bar = tqdm(total=len(todo), desc=f"synth {split} shard {i}/{n}", unit="scene", file=sys.stderr)
+        try:
+            for k in todo:
+                final = out / f"scene_{k:06d}"
+                done = False
+                for attempt in range(MAX_ATTEMPTS):
+                    spec = generate_scene(seed, split, k, resolution, catalog, attempt)
+                    result = render_spec(spec, cache, spp)
+                    if result.problems:
+                        _log_failure(out, spec, result.problems)
+                        stats["redrawn"] += 1
+                        continue
+                    tmp = out / f".tmp-{final.name}-{os.getpid()}"
+                    if tmp.exists():
+                        shutil.rmtree(tmp)
+                    try:
+                        write_scene(result, tmp)
+                    except BaseException:  # Ctrl-C or a full disk while writing: no half-written folder left
+                        shutil.rmtree(tmp, ignore_errors=True)
+                        raise
+                    try:
+                        os.rename(tmp, final)
+                    except OSError:  # another process finished it first
+                        shutil.rmtree(tmp, ignore_errors=True)
+                    done = True
+                    break
+                stats["rendered" if done else "failed"] += 1
+                if bar is not None:
+                    bar.update(1)
+        finally:
             if bar is not None:
-                bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
-        rebuild_manifest(out)
-    stats["seconds"] = time.time() - t0
+                bar.close()
+            rebuild_manifest(out)
+        stats["seconds"] = time.time() - t0
     return stats
 
 

@@ -95,3 +95,32 @@ def test_failed_scene_is_redrawn_and_logged(tmp_path, monkeypatch):
     assert log[0]["scene"] == "scene_000000" and log[0]["attempt"] == 0
     spec = json.loads((tmp_path / "d" / "scene_000000" / "spec.json").read_text())
     assert spec["attempt"] == 1
+
+
+def test_a_shard_is_rendered_by_one_process_at_a_time(tmp_path, capsys):
+    import socket
+    import subprocess
+    import sys
+
+    out = tmp_path / "d"
+    common = ["--out", str(out), "--scenes", "1", "--resolution", "16", "--seed", "4", "--spp", "1"]
+    out.mkdir()
+    lock = out / ".lock-shard-0-of-1"
+    # a live process of this host holds the shard: refused, nothing rendered, its lock kept
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        lock.write_text(f"{sleeper.pid} {socket.gethostname()}\n")
+        assert _run(*common) == 2
+        err = capsys.readouterr().err
+        assert f"shard 0/1 of {out} is being rendered by process {sleeper.pid}" in err and err.count("\n") == 1
+        assert not (out / "scene_000000").exists() and lock.exists()
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    # its process is gone: the stale lock is taken over, and released at the end
+    assert _run(*common) == 0
+    assert (out / "scene_000000" / "data.npz").exists() and not lock.exists()
+    # a lock from another machine is not second-guessed
+    lock.write_text("12345 some-other-host\n")
+    assert _run("--out", str(out), "--scenes", "2", "--resolution", "16", "--seed", "4", "--spp", "1") == 2
+    assert "on some-other-host" in capsys.readouterr().err
