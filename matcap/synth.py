@@ -11,9 +11,12 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import socket
 import sys
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -306,6 +309,24 @@ class ShardLock:
             pass
 
 
+@contextmanager
+def _term_as_interrupt():
+    """While active, SIGTERM (a scheduler's or ``kill``'s stop) raises KeyboardInterrupt like Ctrl-C, so the run
+    unwinds the same way: no half-written scene, the manifest rebuilt, the shard lock released."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, _frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -336,7 +357,7 @@ def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str
     assets_used = None if assets is None else {"meshes": len(catalog.meshes), "envmaps": len(catalog.envmaps),
                                                "textures": len(catalog.textures)}
     _check_params(out, _params(split, resolution, seed, scenes, spp, assets_used))
-    with ShardLock(out, i, n):  # one process per shard
+    with _term_as_interrupt(), ShardLock(out, i, n):  # one process per shard
         cache = AssetCache(assets)
         todo = [k for k in range(i, scenes, n) if not (out / f"scene_{k:06d}" / "spec.json").exists()]
         skipped = len(range(i, scenes, n)) - len(todo)
