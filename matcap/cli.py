@@ -30,8 +30,15 @@ COMMANDS = [
 ]
 
 
+class OneLineErrors(argparse.ArgumentParser):
+    """Usage mistakes end like every other user error: one line on stderr (no usage block) and exit code 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrors(
         prog="matcap",
         description="Material capture and relighting: photos under several lights -> SVBRDF maps -> new light.",
     )

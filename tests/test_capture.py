@@ -260,3 +260,20 @@ def test_with_constant_numerics_and_checks():
         maps.with_constant("base_color", 0.5)
     with pytest.raises(ValueError, match=r"\[0, 1\], got 1.5"):
         maps.with_constant("roughness", 1.5)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["capture", "photos", "--views", "3"], "argument --views: invalid choice: 3"),
+    (["capture"], "the following arguments are required: photos"),
+    (["export", "res", "--out", "tex", "--preset", "nope"], "argument --preset: invalid choice: 'nope'"),
+    (["synth", "--out", "d", "--scenes", "x"], "argument --scenes: invalid int value: 'x'"),
+    (["nosuchcommand"], "argument COMMAND: invalid choice: 'nosuchcommand'"),
+])
+def test_usage_mistakes_are_one_line_exit_2(args, needle, capsys):
+    from matcap.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(args)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and needle in err and "usage:" not in err and "--help" in err
