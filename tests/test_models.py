@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -66,3 +67,33 @@ def test_models_cli_lists_the_bundled_models():
     r = subprocess.run([sys.executable, "-m", "matcap", "models"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "normal" in r.stdout
+
+
+def test_bundled_models_on_the_example_capture(tmp_path):
+    """The README's run command, on 8 of the 50 bundled photos: the shipped weights are used with no flag, and the
+    normal map looks like a convex object seen from the front (normals lean outward from the silhouette's middle)."""
+    import json
+
+    import numpy as np
+
+    from matcap import imageio
+
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "bunny-maps"
+    r = subprocess.run([sys.executable, "-m", "matcap", "capture", str(repo / "examples" / "bunny"), "--out", str(out),
+                        "--max-images", "8", "--quiet"], capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr
+    info = json.loads((out / "capture.json").read_text())
+    for target in ("normal", "brdf"):
+        assert Path(info["models"][target]["weights"]).name == f"{target}_small.safetensors"
+    normal = imageio.read_exr(out / "normal.exr")
+    mask = imageio.read_image(out / "mask.png").pixels[..., 0] > 0
+    n = normal[mask]
+    assert mask.mean() > 0.2 and np.allclose(np.linalg.norm(n, axis=1), 1, atol=1e-3)
+    assert np.median(n[:, 2]) > 0.6  # mostly facing the camera
+    rows, cols = np.nonzero(mask)
+    # x grows to the right, y upward (row 0 is the top): both must follow the position in the silhouette
+    assert np.corrcoef(n[:, 0], cols - cols.mean())[0, 1] > 0.4
+    assert np.corrcoef(n[:, 1], rows.mean() - rows)[0, 1] > 0.4
+    for name in ("basecolor.png", "roughness.png", "metallic.png"):
+        assert (out / name).exists()
