@@ -57,3 +57,21 @@ def test_a_scene_without_synth_fields_is_a_clear_error(tmp_path):
     r = subprocess.run([sys.executable, "-m", "networks.datapack", "pack", str(tmp_path / "data"), str(tmp_path / "p")],
                        capture_output=True, text=True)
     assert r.returncode == 2 and "not a `matcap synth` scene" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_lossy_webp_basis_is_smaller_and_close(tmp_path):
+    data = _synth_like_dataset(tmp_path / "data", scenes=2, size=64)
+    lossless = pack(data, tmp_path / "p0")
+    lossy = pack(data, tmp_path / "p95", quality=95)
+    assert sum(p.stat().st_size for p in lossy) < 0.8 * sum(p.stat().st_size for p in lossless)
+    assert unpack(lossy, tmp_path / "out") == 2
+    for i in range(2):
+        a = np.load(data / f"scene_{i:06d}" / "data.npz")
+        b = np.load(tmp_path / "out" / f"scene_{i:06d}" / "data.npz")
+        assert b["basis"].shape == a["basis"].shape and np.array_equal(a["mask"], b["mask"])
+        scale = np.percentile(a["basis"].astype(np.float32).reshape(len(a["basis"]), -1), 99.9, axis=1)
+        err = np.abs(a["basis"].astype(np.float32) - b["basis"].astype(np.float32)) / scale[:, None, None, None]
+        assert np.median(err) < 0.02 and np.abs(a["images"].astype(np.float32) - b["images"].astype(np.float32)).mean() < 0.015
+    r = subprocess.run([sys.executable, "-m", "networks.datapack", "pack", str(data), str(tmp_path / "bad"),
+                        "--quality", "101"], capture_output=True, text=True)
+    assert r.returncode == 2 and "quality must be" in r.stderr and "Traceback" not in r.stderr
