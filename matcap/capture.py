@@ -7,6 +7,7 @@ undo the geometry -> :class:`MaterialMaps`.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import re
@@ -375,6 +376,27 @@ def _progress_callback(target: str, progress):
     return cb
 
 
+def downscale(cap: Capture, max_side: int) -> Capture:
+    """``cap`` with images (area-averaged in linear light) and mask shrunk so that the longer side is at most
+    ``max_side`` pixels, keeping the aspect ratio; unchanged when it already fits."""
+    if max_side < 16:
+        raise MatcapError(f"--max-side must be at least 16, got {max_side}")
+    h, w = cap.images[0].shape[:2]
+    if max(h, w) <= max_side:
+        return cap
+    import cv2
+
+    s = max_side / max(h, w)
+    size = (max(1, round(w * s)), max(1, round(h * s)))  # cv2: (width, height)
+    images = [cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in cap.images]
+    mask = None
+    if cap.mask is not None:
+        mask = cv2.resize(cap.mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
+        if not mask.any():
+            raise MatcapError(f"the mask vanishes at --max-side {max_side}; use a larger value")
+    return dataclasses.replace(cap, images=images, mask=mask)
+
+
 def capture(
     folder: str | os.PathLike,
     out: str | os.PathLike,
@@ -383,18 +405,25 @@ def capture(
     linear: bool = False,
     overwrite: bool = False,
     constants: dict[str, float] | None = None,
+    max_side: int | None = None,
     **estimate_kwargs,
 ) -> tuple[MaterialMaps, Path]:
     """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`).
 
     ``constants`` (e.g. ``{"metallic": 0.0}``) replaces estimated roughness / metallic maps by constants on the mask
-    (recorded in ``capture.json`` as ``constant_maps``).
+    (recorded in ``capture.json`` as ``constant_maps``). ``max_side`` shrinks the photos first so that their
+    longer side is at most that many pixels (a quick pass over large photos; maps come out at that size).
     """
     from matcap.results import check_output_dir, write_result
 
     constants = {name: check_constant(name, value) for name, value in (constants or {}).items()}
+    if max_side is not None and max_side < 16:
+        raise MatcapError(f"--max-side must be at least 16, got {max_side}")
     check_output_dir(out, overwrite)  # fail before the expensive part
     cap = load_capture(folder, mask=mask, linear=linear)
+    original_wh = [cap.images[0].shape[1], cap.images[0].shape[0]]
+    if max_side is not None:
+        cap = downscale(cap, max_side)
     maps = estimate(cap.images, cap.mask, **estimate_kwargs)
     for name, value in constants.items():
         maps = maps.with_constant(name, value)
@@ -409,6 +438,7 @@ def capture(
             "colour_handling": cap.colour,
             "image_size_wh": [cap.images[0].shape[1], cap.images[0].shape[0]],
             "constant_maps": {name: float(value) for name, value in constants.items()},
+            "photo_size_wh": original_wh,  # image_size_wh differs from it after --max-side
         }
     )
     write_result(maps, out, overwrite=overwrite)

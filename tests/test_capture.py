@@ -277,3 +277,27 @@ def test_usage_mistakes_are_one_line_exit_2(args, needle, capsys):
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and needle in err and "usage:" not in err and "--help" in err
+
+
+def test_max_side_shrinks_photos_and_mask_first(tiny_weights, tmp_path):
+    folder = sphere_capture(tmp_path / "photos")  # 56 x 40
+    out = tmp_path / "result"
+    r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet",
+                "--max-side", "28")
+    assert r.returncode == 0, r.stderr
+    normal = imageio.read_exr(out / "normal.exr")
+    assert normal.shape == (20, 28, 3)
+    info = json.loads((out / "capture.json").read_text())
+    assert info["image_size_wh"] == [28, 20] and info["photo_size_wh"] == [56, 40]
+    # area averaging in linear light: the shrunk photo's mean equals the original's
+    from matcap.capture import downscale, load_capture
+
+    cap = load_capture(folder)
+    small = downscale(cap, 28)
+    assert small.images[0].shape == (20, 28, 3) and small.mask.shape == (20, 28)
+    np.testing.assert_allclose(small.images[0].mean(), cap.images[0].mean(), rtol=1e-4)
+    assert abs(small.mask.mean() - cap.mask.mean()) < 0.03
+    assert downscale(cap, 56) is cap  # already fits
+    bad = run_cli("capture", str(folder), "--out", str(tmp_path / "bad"), "--weights", str(tiny_weights),
+                  "--max-side", "8")
+    assert_one_line_error(bad, "--max-side must be at least 16")

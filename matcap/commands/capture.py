@@ -34,6 +34,9 @@ def register(sub) -> None:
     p.add_argument("--views", type=int, choices=(1, 2, 4, 8), default=1,
                    help="average the prediction over this many mirrored/transposed copies of the input "
                         "(test-time augmentation; costs that many times the time; default 1)")
+    p.add_argument("--max-side", type=int, metavar="PX",
+                   help="shrink the photos first so that their longer side is at most PX (a quick pass over large "
+                        "photos; the maps come out at that size)")
     p.add_argument("--constant", action="append", metavar="MAP=V",
                    help="replace the estimated roughness or metallic map by V on the mask, e.g. metallic=0 for a "
                         "non-metal (repeatable; recorded in capture.json)")
@@ -65,7 +68,7 @@ def run(args) -> int:
         photos, out, mask=args.mask, linear=args.linear, overwrite=args.overwrite,
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
-        constants=constants,
+        constants=constants, max_side=args.max_side,
     )
     t = maps.meta["timings"]
     print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "
