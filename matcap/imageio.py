@@ -94,7 +94,12 @@ def read_image(path: str | os.PathLike) -> StoredImage:
         arr = read_exr(path)
     else:
         cv2 = _cv2()
-        flags = cv2.IMREAD_UNCHANGED if suffix != ".hdr" else (cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+        if suffix == ".hdr":
+            flags = cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR
+        elif suffix in (".jpg", ".jpeg"):
+            flags = cv2.IMREAD_COLOR  # applies the EXIF orientation of phone photos (IMREAD_UNCHANGED would not)
+        else:
+            flags = cv2.IMREAD_UNCHANGED  # keeps 16 bits and alpha
         arr = cv2.imread(path, flags)
         if arr is None:
             raise MatcapError(f"{path}: cannot read image (corrupt or unsupported format)")

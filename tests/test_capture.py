@@ -301,3 +301,22 @@ def test_max_side_shrinks_photos_and_mask_first(tiny_weights, tmp_path):
     bad = run_cli("capture", str(folder), "--out", str(tmp_path / "bad"), "--weights", str(tiny_weights),
                   "--max-side", "8")
     assert_one_line_error(bad, "--max-side must be at least 16")
+
+
+def test_phone_jpegs_are_turned_upright_by_their_exif_orientation(tmp_path):
+    """A portrait phone photo is stored landscape with EXIF Orientation 6 (rotate 90 deg clockwise to view)."""
+    from PIL import Image
+
+    pixels = np.zeros((10, 20, 3), np.uint8)
+    pixels[:, :5] = 255  # stored: the left quarter is white
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    folder = tmp_path / "phone"
+    folder.mkdir()
+    for i in range(2):
+        Image.fromarray(pixels).save(folder / f"IMG_{i}.jpg", exif=exif, quality=100)
+    cap = load_capture(folder)
+    upright = cap.images[0]
+    assert upright.shape == (20, 10, 3)  # portrait, as a viewer shows it
+    # rotated clockwise: the stored left edge is now the top
+    assert upright[:4].mean() > 0.9 and upright[6:].mean() < 0.05
