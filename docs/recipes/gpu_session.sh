@@ -9,6 +9,9 @@
 #   DECAY=2500 bash gpu_session.sh 2 530 t1a.npz                                            # call 2: 440 scenes
 #   DECAY=2000 LR_N=2.5e-4 LR_B=2.5e-4 bash gpu_session.sh 3 470 t1b.npz                    # call 3: 695 scenes
 #
+# Next time: `pack --quality 95` (lossy WebP basis renders, 3.3x smaller: ~430 scenes per 29 MiB) and, from call 2
+# on, the bundled weights moved out of the working tree (DEVELOPING.md) would carry several times more scenes.
+#
 # usage: bash gpu_session.sh PHASE SECONDS PACK... (PHASE 1 starts both runs, 2+ adds data and resumes them);
 # the weights come back as fp16 safetensors in $OUT (export_fp16.py).
 set -u
