@@ -44,9 +44,7 @@ def basis_ab(scenes: int, resolution: int, spp: int, assets: str | None, seed: i
         for objects, lights, envs in prepared:
             r = SceneRenderer(objects, resolution, spp, seed)
             for light in lights:
-                if not reuse:
-                    r._single.clear()  # forget the loaded scene: the next render loads a fresh one
-                r.render([light], envs, spp=None if isinstance(light, EnvironmentLight) else delta_spp)
+                r.render([light], envs, spp=None if isinstance(light, EnvironmentLight) else delta_spp, reuse=reuse)
         return time.perf_counter() - t0
 
     run(True), run(False)  # warm-up: kernel compilation, asset loading

@@ -123,16 +123,17 @@ class SceneRenderer:
         self._single: dict[tuple, tuple] = {}  # one-light scenes kept loaded, by kind of light (and env map)
 
     def render(self, lights: list[Light], envmaps: dict[str, np.ndarray], weights: list[float] | None = None,
-               spp: int | None = None) -> np.ndarray:
+               spp: int | None = None, reuse: bool = True) -> np.ndarray:
         """Linear (H, W, 3) float32 render with all ``lights`` on (each scaled by ``weights``).
 
         A single light reuses the loaded scene of the previous light of its kind (same env map for environment
         lights) and only updates the emitter's parameters: the shapes' acceleration structure is built once per
-        kind instead of once per basis light. The image is the same as from a freshly loaded scene.
+        kind instead of once per basis light. The image is the same as from a freshly loaded scene
+        (``reuse=False`` loads one, as before session 4).
         """
         mi = self.mi
         weights = weights or [1.0] * len(lights)
-        if len(lights) == 1:
+        if len(lights) == 1 and reuse:
             scene = self._single_light_scene(lights[0], envmaps, weights[0])
         else:
             desc = {"type": "scene", "sensor": self.sensor, **self.shapes}
