@@ -115,3 +115,26 @@ def test_cli_relight_not_a_result(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert main(["relight", str(tmp_path / "empty")]) == 2
     assert "texture set" in capsys.readouterr().err
+
+
+def test_cli_relight_with_a_constant_metallic(tmp_path, sphere_maps):
+    """--constant metallic=0 renders the maps as a dielectric: the same as rendering maps whose metallic is 0."""
+    from matcap.results import write_result
+
+    maps = sphere_maps()
+    maps.metallic[maps.mask] = 1.0  # a metal: dark under a white sky wherever its base color is dark
+    write_result(maps, tmp_path / "result")
+    dielectric = maps.with_constant("metallic", 0.0)
+    write_result(dielectric, tmp_path / "dielectric")
+    env = tmp_path / "white.hdr"
+    import cv2
+
+    cv2.imwrite(str(env), np.full((8, 16, 3), 1.0, np.float32))
+    for folder, extra in (("result", ["--constant", "metallic=0"]), ("dielectric", []), ("metal", [])):
+        src = tmp_path / ("result" if folder == "metal" else folder)
+        assert main(["relight", str(src), "--env", str(env), "--spp", "4", "--quiet", "--out", str(tmp_path / f"o_{folder}"),
+                     *extra]) == 0
+    got, want, metal = (read_exr(tmp_path / f"o_{k}" / "relight_white.exr") for k in ("result", "dielectric", "metal"))
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    assert np.abs(got - metal).mean() > 0.01
+    assert main(["relight", str(tmp_path / "result"), "--env", str(env), "--constant", "shiny=1"]) == 2

@@ -25,6 +25,8 @@ def register(sub) -> None:
     p.add_argument("--size", metavar="WxH", help="output size (default: the maps' size); one number = longer side")
     p.add_argument("--tonemap", choices=("aces", "clip"), default="aces", help="PNG tone mapping (default aces)")
     p.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
+    p.add_argument("--constant", action="append", metavar="MAP=V",
+                   help="render with roughness or metallic set to V on the mask, e.g. metallic=0 (repeatable)")
     p.add_argument("--out", help="output folder (default: the source folder)")
     p.add_argument("--overwrite", action="store_true", help="replace existing relight_* files")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -40,8 +42,16 @@ def run(args) -> int:
     if args.env:
         envs = env_paths(args.env)
     out = Path(args.out) if args.out else Path(args.source)
+    source = args.source
+    if args.constant:
+        from matcap.capture import parse_constants
+        from matcap.relight import load_maps
+
+        source = load_maps(args.source)
+        for key, value in parse_constants(args.constant).items():
+            source = source.with_constant(key, value)
     images = relight(
-        args.source, env=envs, rotate=args.rotate, exposure=args.exposure, point=args.point,
+        source, env=envs, rotate=args.rotate, exposure=args.exposure, point=args.point,
         intensity=args.intensity, directional=args.directional, irradiance=args.irradiance, spp=args.spp,
         size=args.size, out=out, overwrite=args.overwrite, seed=args.seed, tonemap_mode=args.tonemap,
         progress=not args.quiet,
