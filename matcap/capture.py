@@ -376,11 +376,15 @@ def _progress_callback(target: str, progress):
     return cb
 
 
+def _check_max_side(max_side: int) -> None:
+    if max_side < 16:
+        raise MatcapError(f"--max-side must be at least 16, got {max_side}")
+
+
 def downscale(cap: Capture, max_side: int) -> Capture:
     """``cap`` with images (area-averaged in linear light) and mask shrunk so that the longer side is at most
     ``max_side`` pixels, keeping the aspect ratio; unchanged when it already fits."""
-    if max_side < 16:
-        raise MatcapError(f"--max-side must be at least 16, got {max_side}")
+    _check_max_side(max_side)
     h, w = cap.images[0].shape[:2]
     if max(h, w) <= max_side:
         return cap
@@ -417,16 +421,14 @@ def capture(
     from matcap.results import check_output_dir, write_result
 
     constants = {name: check_constant(name, value) for name, value in (constants or {}).items()}
-    if max_side is not None and max_side < 16:
-        raise MatcapError(f"--max-side must be at least 16, got {max_side}")
+    if max_side is not None:
+        _check_max_side(max_side)  # fail before the expensive part
     check_output_dir(out, overwrite)  # fail before the expensive part
     cap = load_capture(folder, mask=mask, linear=linear)
     original_wh = [cap.images[0].shape[1], cap.images[0].shape[0]]
     if max_side is not None:
         cap = downscale(cap, max_side)
-    maps = estimate(cap.images, cap.mask, **estimate_kwargs)
-    for name, value in constants.items():
-        maps = maps.with_constant(name, value)
+    maps = estimate(cap.images, cap.mask, **estimate_kwargs).with_constants(constants)
     used = [cap.files[i] for i in maps.meta["images_used"]]
     maps.meta.update(
         {
@@ -437,7 +439,6 @@ def capture(
             "skipped_files": cap.skipped,
             "colour_handling": cap.colour,
             "image_size_wh": [cap.images[0].shape[1], cap.images[0].shape[0]],
-            "constant_maps": {name: float(value) for name, value in constants.items()},
             "photo_size_wh": original_wh,  # image_size_wh differs from it after --max-side
         }
     )

@@ -76,6 +76,15 @@ class MaterialMaps:
         value = check_constant(name, value)
         return replace(self, **{name: np.where(self.mask, np.float32(value), np.float32(0)).astype(np.float32)})
 
+    def with_constants(self, values: dict[str, float]) -> "MaterialMaps":
+        """:meth:`with_constant` for each ``name: value`` of ``values``, listed in ``meta["constant_maps"]`` (added
+        to any listed there before)."""
+        out = self
+        for name, value in values.items():
+            out = out.with_constant(name, value)
+        listed = {**self.meta.get("constant_maps", {}), **{name: float(value) for name, value in values.items()}}
+        return replace(out, meta={**self.meta, "constant_maps": listed})
+
 
 def check_constant(name: str, value: float) -> float:
     """``value`` as a float if ``name`` is a map that may be set to a constant and ``value`` lies in [0, 1]."""

@@ -57,14 +57,10 @@ def run(args) -> int:
         from matcap.capture import parse_constants
         from matcap.results import read_result
 
-        constants = parse_constants(args.constant)
-        source = read_result(args.result)
-        for key, value in constants.items():
-            source = source.with_constant(key, value)
-        source.meta["constant_maps"] = {**source.meta.get("constant_maps", {}), **constants}
+        source = read_result(args.result).with_constants(parse_constants(args.constant))
     paths = export(
-        source, args.out, name=args.name or Path(args.result).resolve().name, preset=args.preset, normal=args.normal, height=not args.no_height,
-        mesh=args.mesh, overwrite=args.overwrite, glb=not args.no_glb, height_method=args.height_method,
+        source, args.out, name=args.name or Path(args.result).resolve().name, preset=args.preset,
+        normal=args.normal, height=not args.no_height, mesh=args.mesh, overwrite=args.overwrite, glb=not args.no_glb, height_method=args.height_method,
         frame="fit" if args.fit_frame else "camera", occlusion=not args.no_ao, ao_radius=args.ao_radius,
     )
     for key, path in paths.items():

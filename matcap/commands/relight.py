@@ -47,9 +47,7 @@ def run(args) -> int:
         from matcap.capture import parse_constants
         from matcap.relight import load_maps
 
-        source = load_maps(args.source)
-        for key, value in parse_constants(args.constant).items():
-            source = source.with_constant(key, value)
+        source = load_maps(args.source).with_constants(parse_constants(args.constant))
     images = relight(
         source, env=envs, rotate=args.rotate, exposure=args.exposure, point=args.point,
         intensity=args.intensity, directional=args.directional, irradiance=args.irradiance, spp=args.spp,
