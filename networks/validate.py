@@ -36,12 +36,9 @@ def score(weights: str | Path, data: str | Path, scenes: int | None = None, devi
     result = {"weights": str(weights), "target": config.target, "scenes": count,
               "pixel_samples": pixel_samples or config.pixel_samples, **result}
     if config.target == "brdf":
-        for key in ("base_color", "roughness", "metallic"):
+        for key in ("base_color", "roughness", "metallic", "base_color_exposure_aligned"):
             const = result[f"rmse_const_{key}"]
             result[f"gain_{key}"] = 1.0 - result[f"rmse_{key}"] / const if const > 0 else float("nan")
-        const = result["rmse_const_base_color_exposure_aligned"]
-        result["gain_base_color_exposure_aligned"] = (
-            1.0 - result["rmse_base_color_exposure_aligned"] / const if const > 0 else float("nan"))
     return result
 
 
