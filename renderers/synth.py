@@ -151,11 +151,14 @@ class SceneRenderer:
             self._single[key] = (scene, mi.traverse(scene))
             return scene
         scene, params = self._single[key]
-        fresh = mi.traverse(mi.load_dict(desc))
-        for name in fresh.keys():
-            if name == "sampling_weight" or (name == "data" and key[1] is not None):
-                continue  # same env map pixels: only its rotation and scale change
-            params[f"light_00.{name}"] = fresh[name]
+        if key[1] is not None:  # the same env map: only its rotation and scale change (no new sampling tables)
+            params["light_00.to_world"] = mi.Transform4f(desc["to_world"])
+            params["light_00.scale"] = desc["scale"]
+        else:
+            fresh = mi.traverse(mi.load_dict(desc))
+            for name in fresh.keys():
+                if name != "sampling_weight":
+                    params[f"light_00.{name}"] = fresh[name]
         params.update()
         return scene
 
