@@ -387,14 +387,18 @@ class Regressor(nn.Module):
             self.prediction_rough = PredictionHead(d, cfg.head_width, 1)
             self.prediction_metal = PredictionHead(d, cfg.head_width, 1)
 
-    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        """x: (B, m, dim) (each row one sample set) -> dict of (B, m, k) float32 maps (normal unit length)."""
+    def forward(self, x: torch.Tensor, clamp: bool = True) -> dict[str, torch.Tensor]:
+        """x: (B, m, dim) (each row one sample set) -> dict of (B, m, k) float32 maps (normal unit length).
+
+        ``clamp=False`` returns the BRDF heads' linear outputs instead of their ReLU (the published network's
+        output): a training loss on them keeps a gradient where the ReLU is zero."""
         x = self.comm(x)
         out = {"normal": F.normalize(self.prediction_normal(x).float(), p=2, dim=-1)}
         if self.target == "brdf":
-            out["base_color"] = torch.relu(self.prediction_base(x).float())
-            out["roughness"] = torch.relu(self.prediction_rough(x).float())
-            out["metallic"] = torch.relu(self.prediction_metal(x).float())
+            act = torch.relu if clamp else (lambda t: t)
+            out["base_color"] = act(self.prediction_base(x).float())
+            out["roughness"] = act(self.prediction_rough(x).float())
+            out["metallic"] = act(self.prediction_metal(x).float())
         return out
 
 
@@ -506,7 +510,7 @@ class SDMUniPS(nn.Module):
 
     # ------------------------------------------------------------------ decode
     def decode(self, images: torch.Tensor, mask: torch.Tensor, features: torch.Tensor, pixel_index: torch.Tensor,
-               decoder_resolution: int | None = None) -> dict[str, torch.Tensor]:
+               decoder_resolution: int | None = None, clamp: bool = True) -> dict[str, torch.Tensor]:
         """Predict the maps at ``m`` pixels per object; the m pixels of a row form one sample set.
 
         images: (B, N, 3, H, W) (raw, un-masked; resized to the decoder resolution D if D != H);
@@ -514,7 +518,8 @@ class SDMUniPS(nn.Module):
         features: (B, N, C, h, w) from :meth:`encode`;
         pixel_index: (B, m) long, flat indices ``row * D + col`` into the D x D decoder grid (D = H by default).
         Returns ``{"normal": (B, m, 3) unit}`` plus, for target "brdf", ``"base_color" (B, m, 3)``,
-        ``"roughness" (B, m, 1)``, ``"metallic" (B, m, 1)`` (all float32).
+        ``"roughness" (B, m, 1)``, ``"metallic" (B, m, 1)`` (all float32; ``clamp=False``: the BRDF maps before
+        the output ReLU, for training).
         """
         self._check_inputs(images, mask)
         b, n, _, h, w = images.shape
@@ -556,12 +561,12 @@ class SDMUniPS(nn.Module):
             x = self.glc_aggregation(torch.cat([o.to(x.dtype), x], dim=-1))           # (B*mc, Da)
             pooled.append(x.reshape(b, mc, -1))
         x = torch.cat(pooled, dim=1) if len(pooled) > 1 else pooled[0]
-        return self.regressor(x)
+        return self.regressor(x, clamp=clamp)
 
-    def forward(self, images: torch.Tensor, mask: torch.Tensor, pixel_index: torch.Tensor
+    def forward(self, images: torch.Tensor, mask: torch.Tensor, pixel_index: torch.Tensor, clamp: bool = True
                 ) -> dict[str, torch.Tensor]:
-        """``decode(images, mask, encode(images, mask), pixel_index)``; shapes as in :meth:`decode`."""
-        return self.decode(images, mask, self.encode(images, mask), pixel_index)
+        """``decode(images, mask, encode(images, mask), pixel_index, clamp=clamp)``; shapes as in :meth:`decode`."""
+        return self.decode(images, mask, self.encode(images, mask), pixel_index, clamp=clamp)
 
 
 def build_model(config: SDMUniPSConfig, state_dict: dict[str, torch.Tensor] | None = None) -> SDMUniPS:

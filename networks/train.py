@@ -51,15 +51,20 @@ def gather_pixels(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return torch.gather(flat, 1, index.unsqueeze(-1).expand(-1, -1, flat.shape[-1]))
 
 
-def compute_loss(pred: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], target: str):
-    """MSE on unit normals (and BRDF maps) at the sampled pixels, which all lie inside the loss mask."""
+BRDF_KEYS = ("base_color", "roughness", "metallic")
+
+
+def compute_loss(pred: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], target: str,
+                 brdf_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)):
+    """MSE on unit normals (and BRDF maps) at the sampled pixels, which all lie inside the loss mask. The BRDF
+    loss is ``sum(w_k * MSE_k)`` over base color, roughness, metallic with ``brdf_weights``; the returned terms
+    are the unweighted MSEs."""
     idx = batch["pixel_index"]
     terms = {"normal": F.mse_loss(pred["normal"].float(), gather_pixels(batch["normal"], idx))}
     if target == "brdf":
-        terms["base_color"] = F.mse_loss(pred["base_color"].float(), gather_pixels(batch["base_color"], idx))
-        terms["roughness"] = F.mse_loss(pred["roughness"].float(), gather_pixels(batch["roughness"], idx))
-        terms["metallic"] = F.mse_loss(pred["metallic"].float(), gather_pixels(batch["metallic"], idx))
-        total = terms["base_color"] + terms["roughness"] + terms["metallic"]
+        for key in BRDF_KEYS:
+            terms[key] = F.mse_loss(pred[key].float(), gather_pixels(batch[key], idx))
+        total = sum(w * terms[key] for w, key in zip(brdf_weights, BRDF_KEYS))
     else:
         total = terms["normal"]
     return total, {k: float(v.detach()) for k, v in terms.items()}
@@ -350,16 +355,17 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
     step = start
     stopped = False
     batches = _batches(cache, scenes, tc, start, rank)
+    clamp = not tc.brdf_loss_before_relu
     with _stop_requests(enabled=not ddp) as stop:
         for step, drawn in batches:
             torch.manual_seed(tc.seed * 1_000_003 + step * 7919 + rank)  # dropout noise of this step
             batch = to_torch(drawn, device)
             if autocast is not None:
                 with autocast:
-                    pred = net(batch["images"], batch["input_mask"], batch["pixel_index"])
+                    pred = net(batch["images"], batch["input_mask"], batch["pixel_index"], clamp=clamp)
             else:
-                pred = net(batch["images"], batch["input_mask"], batch["pixel_index"])
-            loss, terms = compute_loss(pred, batch, tc.target)
+                pred = net(batch["images"], batch["input_mask"], batch["pixel_index"], clamp=clamp)
+            loss, terms = compute_loss(pred, batch, tc.target, tc.brdf_weights)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if tc.grad_clip > 0:

@@ -36,6 +36,11 @@ class TrainConfig:
     """Step-decay factor."""
     grad_clip: float = 1.0
     """Max global gradient norm (0 = off)."""
+    brdf_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """BRDF net: loss weights of the base color, roughness and metallic MSEs (the paper sums them unweighted)."""
+    brdf_loss_before_relu: bool = False
+    """BRDF net: compute the loss on the heads' linear outputs instead of their ReLU, so a pixel whose output
+    sits below zero still gets a gradient (the ReLU of an unclamped prediction is what inference returns)."""
     canonical_resolution: int = 0
     """Encoder canonical resolution (0 = that of the ``--init`` weights, else the preset's). CPU runs use 128."""
     dropout: float = -1.0
@@ -68,6 +73,16 @@ class TrainConfig:
     """Every rank writes final_rank<r>.safetensors (used by the DDP test)."""
 
 
+def _three_floats(text: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or any(not v >= 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected three non-negative numbers like 1,2,2, got {text!r}")
+    return values
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """CLI flags for every TrainConfig field (shared by `matcap train` and `python -m networks.train`)."""
     d = TrainConfig()
@@ -91,6 +106,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(s, name))
     for name in ("fresh_combination_prob", "drop_mask_prob", "min_crop"):
         p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(s, name))
+    p.add_argument("--brdf-weights", type=_three_floats, default=d.brdf_weights, metavar="B,R,M",
+                   help="BRDF net: loss weights of base color, roughness, metallic (default 1,1,1)")
+    p.add_argument("--brdf-loss-before-relu", action="store_true",
+                   help="BRDF net: loss on the heads' outputs before the ReLU (keeps a gradient below zero)")
     p.add_argument("--no-dihedral", dest="dihedral", action="store_false",
                    help="no random mirror / 90-degree rotation augmentation")
     p.add_argument("--val-data", default="",

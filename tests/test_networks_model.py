@@ -57,6 +57,19 @@ def test_tiny_forward_shapes_and_unit_normals(target):
             assert (out[k] >= 0).all()  # ReLU on the BRDF heads
 
 
+def test_unclamped_brdf_outputs_are_the_heads_before_their_relu():
+    model = _tiny("brdf", seed=4)
+    images, mask, idx = _inputs()
+    with torch.no_grad():
+        clamped = model(images, mask, idx)
+        raw = model(images, mask, idx, clamp=False)
+    for key in ("base_color", "roughness", "metallic"):
+        assert torch.equal(torch.relu(raw[key]), clamped[key])
+    assert torch.equal(raw["normal"], clamped["normal"])
+    # a random tiny net puts some outputs below zero: there the loss on raw outputs still has a gradient
+    assert any(bool((raw[k] < 0).any()) for k in ("base_color", "roughness", "metallic"))
+
+
 def test_encode_shape_and_decode_consistency():
     model = _tiny()
     images, mask, idx = _inputs(side=64)

@@ -210,6 +210,47 @@ def test_brdf_validation_reports_rmse_and_constant_baseline(tiny_dataset, tiny_v
     assert validate_main([str(tmp_path / "missing.safetensors"), str(tiny_val_dataset)]) == 2
 
 
+def test_brdf_loss_weights_scale_each_map_term():
+    from networks.train import compute_loss
+
+    g = torch.Generator().manual_seed(0)
+    b, h, m = 2, 8, 10
+    batch = {"pixel_index": torch.randint(0, h * h, (b, m), generator=g),
+             "normal": torch.nn.functional.normalize(torch.randn(b, h, h, 3, generator=g), dim=-1),
+             "base_color": torch.rand(b, h, h, 3, generator=g), "roughness": torch.rand(b, h, h, generator=g),
+             "metallic": torch.rand(b, h, h, generator=g)}
+    pred = {"normal": torch.nn.functional.normalize(torch.randn(b, m, 3, generator=g), dim=-1),
+            "base_color": torch.rand(b, m, 3, generator=g), "roughness": torch.randn(b, m, 1, generator=g),
+            "metallic": torch.randn(b, m, 1, generator=g)}
+    plain, terms = compute_loss(pred, batch, "brdf")
+    weighted, same_terms = compute_loss(pred, batch, "brdf", (0.5, 2.0, 3.0))
+    assert terms == same_terms  # the logged terms stay unweighted
+    assert float(plain) == pytest.approx(terms["base_color"] + terms["roughness"] + terms["metallic"], rel=1e-6)
+    assert float(weighted) == pytest.approx(0.5 * terms["base_color"] + 2 * terms["roughness"] + 3 * terms["metallic"],
+                                            rel=1e-6)
+
+
+@pytest.mark.parametrize("text", ["1,2", "1,x,2", "1,-1,2"])
+def test_bad_brdf_weights_are_a_one_line_usage_error(text, capsys):
+    from networks.train import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--data", "nowhere", "--brdf-weights", text])
+    assert exc.value.code == 2
+    assert "expected three non-negative numbers" in capsys.readouterr().err
+
+
+def test_brdf_training_with_weights_and_loss_before_relu_runs_and_resumes(tiny_dataset, tmp_path):
+    from networks.train import train
+
+    kw = dict(target="brdf", brdf_weights=(1.0, 2.0, 2.0), brdf_loss_before_relu=True)
+    full = train(_tc(tiny_dataset, tmp_path / "full", steps=4, **kw), progress=False)
+    train(_tc(tiny_dataset, tmp_path / "part", steps=2, **kw), progress=False)
+    train(_tc(tiny_dataset, tmp_path / "part", steps=4, **kw), resume=True, progress=False)
+    a, b = _state(tmp_path / "full" / "last.safetensors"), _state(tmp_path / "part" / "last.safetensors")
+    assert full["step"] == 4 and all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_exposure_aligned_base_color_factors_out_one_scale_per_scene():
     from networks.train import exposure_aligned_sse
 
