@@ -15,6 +15,10 @@
       A rejected refinement: lights estimated from the network's normals, normals re-solved by robust least squares
       with them and averaged with the network's. Prints the mean angular error per lighting group of the network
       alone, the re-solved normals and the average (docs/training.md, session 4).
+  python benchmarks/diagnose_training.py brdf-outputs --data DATA [--init W] [--scenes 12]
+      What the BRDF network's roughness and metallic heads do on every mask pixel of the first scenes: the share of
+      outputs below zero before the ReLU (no gradient there when the loss is on the ReLU), the mean of prediction
+      and truth, their correlation, and for metallic the mean prediction on metals (truth > 0.5) and on the rest.
 """
 from __future__ import annotations
 
@@ -158,6 +162,46 @@ def self_calibrated(data: str, init: str) -> None:
         print(f"| {group} | {len(row['network'])} | " + " | ".join(f"{np.mean(row[k]):.2f}" for k in row) + " |")
 
 
+def brdf_outputs(data: str, init: str, scenes: int) -> None:
+    import torch
+
+    from networks.checkpoint import load_model
+    from networks.data import list_scenes, load_scene
+    from networks.inference import predict
+    from networks.preprocess import normalize_images
+
+    torch.set_num_threads(1)
+    model, _, _ = load_model(init)
+    heads = {"roughness": model.regressor.prediction_rough, "metallic": model.regressor.prediction_metal}
+    raw: dict[str, list] = {k: [] for k in heads}
+    for key, head in heads.items():
+        head.register_forward_hook(lambda _m, _i, out, key=key: raw[key].append(out.detach().float().reshape(-1)))
+    pre: dict[str, list] = {k: [] for k in heads}
+    pred: dict[str, list] = {k: [] for k in heads}
+    truth: dict[str, list] = {k: [] for k in heads}
+    for path in list_scenes(data)[:scenes]:
+        scene = load_scene(path)
+        mask = scene["mask"].astype(bool)
+        m = torch.from_numpy(mask)
+        images = torch.from_numpy(scene["images"].astype(np.float32)).permute(0, 3, 1, 2)
+        for v in raw.values():
+            v.clear()
+        out = predict(model, normalize_images(images, m.float().unsqueeze(0)), m, seed=0)
+        for key in heads:
+            pre[key].append(torch.cat(raw[key]).numpy())
+            pred[key].append(out[key][mask].reshape(-1))
+            truth[key].append(scene[key][mask].astype(np.float64).reshape(-1))
+    print(f"{init} on the first {scenes} scenes of {data}")
+    print("| map | outputs < 0 before ReLU | mean prediction | mean truth | correlation |")
+    print("|---|---:|---:|---:|---:|")
+    for key in heads:
+        x, p, t = (np.concatenate(d[key]) for d in (pre, pred, truth))
+        print(f"| {key} | {(x < 0).mean():.1%} | {p.mean():.3f} | {t.mean():.3f} | {np.corrcoef(p, t)[0, 1]:.3f} |")
+    p, t = np.concatenate(pred["metallic"]), np.concatenate(truth["metallic"])
+    print(f"metallic: mean prediction {p[t > 0.5].mean():.3f} on metals ({(t > 0.5).mean():.1%} of pixels), "
+          f"{p[t <= 0.5].mean():.3f} on the rest")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="what", required=True)
@@ -172,11 +216,17 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("self-calibrated")
     c.add_argument("--data", required=True)
     c.add_argument("--init", default="networks/weights/normal_small.safetensors", help="normal network weights")
+    b = sub.add_parser("brdf-outputs")
+    b.add_argument("--data", required=True)
+    b.add_argument("--init", default="networks/weights/brdf_small.safetensors", help="BRDF network weights")
+    b.add_argument("--scenes", type=int, default=12)
     args = ap.parse_args(argv)
     if args.what == "overfit":
         overfit(args.data, args.init, args.steps, args.lr, args.target)
     elif args.what == "self-calibrated":
         self_calibrated(args.data, args.init)
+    elif args.what == "brdf-outputs":
+        brdf_outputs(args.data, args.init, args.scenes)
     elif args.what == "albedo-bound":
         albedo_bound(args.data)
     else:
