@@ -46,8 +46,10 @@ def card_markdown(name: str, config, card: dict[str, Any], notes: str = "") -> s
         f"| processes | {card.get('world_size', 1)} |",
     ]
     for k in ("lr", "batch", "weight_decay", "warmup_steps", "decay_every", "decay_factor", "seed", "dropout",
-              "canonical_resolution", "bf16"):
-        if k in tc:
+              "canonical_resolution", "bf16", "brdf_weights", "brdf_loss_before_relu"):
+        if k in ("dropout", "canonical_resolution"):  # the network's (the run's flag may say "inherit")
+            lines.append(f"| {k} | {getattr(config, k)} |")
+        elif k in tc and (config.target == "brdf" or not k.startswith("brdf_")):
             lines.append(f"| {k} | {tc[k]} |")
     if "sample" in tc:
         lines.append(f"| sampling | {json.dumps(tc['sample'])} |")
