@@ -9,7 +9,8 @@
 #   DECAY=2500 bash gpu_session.sh 2 530 t1a.npz                                            # call 2: 440 scenes
 #   DECAY=2000 LR_N=2.5e-4 LR_B=2.5e-4 bash gpu_session.sh 3 470 t1b.npz                    # call 3: 695 scenes
 #
-# Next time: `pack --quality 95` (lossy WebP basis renders, 3.3x smaller: ~430 scenes per 29 MiB) and, from call 2
+# Next time: BRDF_LOSS="--brdf-weights 1,2,2 --brdf-loss-before-relu" INIT_B=networks/weights/brdf_small.safetensors
+# (session 5: the BRDF loss before the ReLU reaches the metals), `pack --quality 95` (lossy WebP basis renders, 3.3x smaller: ~430 scenes per 29 MiB) and, from call 2
 # on, the bundled weights moved out of the working tree (DEVELOPING.md) would carry several times more scenes.
 #
 # usage: bash gpu_session.sh PHASE SECONDS PACK... (PHASE 1 starts both runs, 2+ adds data and resumes them);
@@ -21,7 +22,7 @@ T0=$(date +%s)
 D=/tmp/d
 COMMON="--preset small --canonical-resolution 128 --dropout 0 --resolution 128 --min-images 3 --max-images 6 --val-data $D/val --val-scenes 24 --val-every-s ${VAL_S:-90} --checkpoint-every-s 60 --bf16 --device cuda --workers 7 --quiet --steps 200000"
 NARGS="--target normal --batch ${BATCH:-16} --pixel-samples 2048 --lr ${LR_N:-4e-4} --warmup-steps 200 --decay-every ${DECAY:-3000} --decay-factor 0.7 --out /tmp/run_n"
-BARGS="--target brdf --batch ${BATCH:-16} --pixel-samples 2048 --lr ${LR_B:-4e-4} --warmup-steps 200 --decay-every ${DECAY:-3000} --decay-factor 0.7 --out /tmp/run_b"
+BARGS="--target brdf --batch ${BATCH:-16} --pixel-samples 2048 --lr ${LR_B:-4e-4} --warmup-steps 200 --decay-every ${DECAY:-3000} --decay-factor 0.7 --out /tmp/run_b ${BRDF_LOSS:-}"
 if [ "$phase" = 1 ] || [ ! -d /tmp/run_n ]; then
   echo "fresh machine: phase $phase"; nvidia-smi -L; python3 -c "import torch, cv2, safetensors, numpy; print(torch.__version__, numpy.__version__, torch.cuda.is_available())"
   python3 -m networks.datapack unpack val.npz --out $D/val
