@@ -40,7 +40,8 @@ class TrainConfig:
     """BRDF net: loss weights of the base color, roughness and metallic MSEs (the paper sums them unweighted)."""
     brdf_loss_before_relu: bool = False
     """BRDF net: compute the loss on the heads' linear outputs instead of their ReLU, so a pixel whose output
-    sits below zero still gets a gradient (the ReLU of an unclamped prediction is what inference returns)."""
+    sits below zero still gets a gradient (the ReLU of an unclamped prediction is what inference returns). The
+    BRDF terms in the training log are then those of the linear outputs; validation always scores the ReLU."""
     canonical_resolution: int = 0
     """Encoder canonical resolution (0 = that of the ``--init`` weights, else the preset's). CPU runs use 128."""
     dropout: float = -1.0
