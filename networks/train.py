@@ -93,7 +93,7 @@ def exposure_aligned_sse(pred: np.ndarray, truth: np.ndarray) -> tuple[float, fl
 
 @torch.no_grad()
 def validate(model, scenes: list[Path], target: str, device, max_scenes: int, seed: int = 0,
-             pixel_samples: int | None = None) -> dict:
+             pixel_samples: int | None = None, views: int = 1) -> dict:
     """Mean angular error (degrees) per lighting group, and BRDF RMSEs (pooled over pixels, with the RMSE of the
     best constant prediction beside them), on the first ``max_scenes`` scenes. Base color is also scored
     exposure-aligned (``rmse_base_color_exposure_aligned``): the network sees images normalised per image, so the
@@ -101,9 +101,12 @@ def validate(model, scenes: list[Path], target: str, device, max_scenes: int, se
     their best single scale per scene.
 
     Each scene is predicted with its 10 stored images and its ground-truth mask, every pixel, in sample sets of
-    ``pixel_samples`` pixels (default: the model's).
+    ``pixel_samples`` pixels (default: the model's), averaged over ``views`` mirrored / transposed copies of the
+    input as `matcap capture --views` does (1 = none).
     """
-    from networks.inference import predict
+    from functools import partial
+
+    from networks.inference import predict, predict_views
 
     was_training = model.training
     model.eval()
@@ -124,7 +127,7 @@ def validate(model, scenes: list[Path], target: str, device, max_scenes: int, se
         images = torch.from_numpy(scene["images"].astype(np.float32)).permute(0, 3, 1, 2).to(device)
         m = torch.from_numpy(mask).to(device)
         images = normalize_images(images, m.float().unsqueeze(0))
-        out = predict(model, images, m, seed=seed, pixel_samples=pixel_samples)
+        out = predict_views(partial(predict, model), images, m, views=views, seed=seed, pixel_samples=pixel_samples)
         n = out["normal"][valid]
         g = gt[valid] / np.linalg.norm(gt[valid], axis=1, keepdims=True)
         err = np.degrees(np.arccos(np.clip((n * g).sum(1) / np.maximum(np.linalg.norm(n, axis=1), 1e-8), -1, 1)))

@@ -1,6 +1,7 @@
 """Score trained weights on a synthetic split, exactly as training validation does.
 
-    python -m networks.validate WEIGHTS.safetensors DATA_TEST [--scenes N] [--pixel-samples P] [--json FILE]
+    python -m networks.validate WEIGHTS.safetensors DATA_TEST [--scenes N] [--pixel-samples P] [--views V]
+        [--json FILE]
 
 Prints one JSON object: mean angular error (degrees) per lighting group and over all scenes, and for a BRDF network
 the RMSE of base color, roughness and metallic next to the RMSE of the best constant prediction
@@ -19,9 +20,9 @@ from pathlib import Path
 
 
 def score(weights: str | Path, data: str | Path, scenes: int | None = None, device: str = "cpu",
-          pixel_samples: int | None = None) -> dict:
+          pixel_samples: int | None = None, views: int = 1) -> dict:
     """Validation numbers of ``weights`` on the first ``scenes`` scenes of ``data`` (all when None), predicted in
-    sample sets of ``pixel_samples`` pixels (default: the model's)."""
+    sample sets of ``pixel_samples`` pixels (default: the model's), averaged over ``views`` test-time views."""
     import torch
 
     from networks.checkpoint import load_model
@@ -32,8 +33,8 @@ def score(weights: str | Path, data: str | Path, scenes: int | None = None, devi
     found = list_scenes(data)
     count = len(found) if scenes is None else min(scenes, len(found))
     result = validate(model, found, config.target, torch.device(device), count,  # validate() runs without grad
-                      pixel_samples=pixel_samples)
-    result = {"weights": str(weights), "target": config.target, "scenes": count,
+                      pixel_samples=pixel_samples, views=views)
+    result = {"weights": str(weights), "target": config.target, "scenes": count, "views": views,
               "pixel_samples": pixel_samples or config.pixel_samples, **result}
     if config.target == "brdf":
         for key in ("base_color", "roughness", "metallic", "base_color_exposure_aligned"):
@@ -48,11 +49,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("data", help="a `matcap synth` dataset folder (the test split)")
     p.add_argument("--scenes", type=int, help="use the first N scenes (default: all)")
     p.add_argument("--pixel-samples", type=int, help="pixels per sample set (default: the model's)")
+    p.add_argument("--views", type=int, choices=(1, 2, 4, 8), default=1,
+                   help="test-time augmentation views, as in `matcap capture --views` (default 1)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--json", metavar="FILE", help="also write the result to FILE")
     args = p.parse_args(argv)
     try:
-        result = score(args.weights, args.data, args.scenes, args.device, args.pixel_samples)
+        result = score(args.weights, args.data, args.scenes, args.device, args.pixel_samples, args.views)
     except (ValueError, OSError) as exc:
         print(f"networks.validate: error: {exc}", file=sys.stderr)
         return 2

@@ -208,6 +208,12 @@ def test_brdf_validation_reports_rmse_and_constant_baseline(tiny_dataset, tiny_v
     assert abs(scored["rmse_base_color"] - val["rmse_base_color"]) < 1e-6
     assert scored["gain_base_color"] == pytest.approx(1 - val["rmse_base_color"] / val["rmse_const_base_color"])
     assert validate_main([str(tmp_path / "missing.safetensors"), str(tiny_val_dataset)]) == 2
+    # test-time views: a different prediction (mirrored copies averaged), scored the same way
+    assert validate_main([str(tmp_path / "last.safetensors"), str(tiny_val_dataset), "--views", "2", "--json",
+                          str(out)]) == 0
+    two = json.loads(out.read_text())
+    assert two["views"] == 2 and scored["views"] == 1
+    assert 0 <= two["rmse_base_color"] < 1 and two["rmse_base_color"] != scored["rmse_base_color"]
 
 
 def test_brdf_loss_weights_scale_each_map_term():
