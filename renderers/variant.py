@@ -50,6 +50,19 @@ def choose_variant(prefer: str | None = None, quiet: bool = False) -> str:
     return _chosen
 
 
+def interrupted_by(exc: BaseException) -> bool:
+    """Whether a ``KeyboardInterrupt`` is among ``exc`` and the exceptions it was raised from (``__cause__`` /
+    ``__context__``): Dr.Jit reports an interrupt inside its custom operations (``mi.render``) as RuntimeError."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return True
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return False
+
+
 def render_array(scene, integrator=None, *, spp: int, seed: int = 0):
     """``mi.render`` evaluated into a float32 numpy array (H, W, C); Ctrl-C raises ``KeyboardInterrupt``.
 
@@ -61,7 +74,12 @@ def render_array(scene, integrator=None, *, spp: int, seed: int = 0):
     import numpy as np
 
     integrator = integrator if integrator is not None else scene.integrator()
-    image = np.array(mi.render(scene, integrator=integrator, spp=int(spp), seed=int(seed)), dtype=np.float32)
+    try:
+        image = np.array(mi.render(scene, integrator=integrator, spp=int(spp), seed=int(seed)), dtype=np.float32)
+    except RuntimeError as exc:
+        if interrupted_by(exc):  # a signal handler raised while Dr.Jit ran Python code: Dr.Jit wraps the interrupt
+            raise KeyboardInterrupt("rendering interrupted") from exc
+        raise
     if integrator.should_stop():
         raise KeyboardInterrupt("rendering interrupted")
     return image

@@ -175,3 +175,22 @@ def test_ctrl_c_during_a_render_raises_instead_of_returning_a_partial_image(monk
                           "shape": {"type": "rectangle"}, "light": {"type": "constant"},
                           "integrator": {"type": "path"}})
     assert render_array(scene, spp=1).shape == (4, 4, 3)  # the scene's own integrator, nothing cancelled
+
+
+def test_an_interrupt_wrapped_by_drjit_is_recognised():
+    """SIGTERM inside mi.render reaches Python as RuntimeError raised from the handler's KeyboardInterrupt."""
+    from renderers.variant import interrupted_by
+
+    def wrapped(inner: BaseException) -> RuntimeError:
+        try:
+            try:
+                raise inner
+            except BaseException as exc:
+                raise RuntimeError("drjit.custom(...): error while performing a custom differentiable operation") from exc
+        except RuntimeError as outer:
+            return outer
+
+    assert interrupted_by(wrapped(KeyboardInterrupt("signal 15")))
+    assert interrupted_by(KeyboardInterrupt())
+    assert not interrupted_by(wrapped(ValueError("a real rendering error")))
+    assert not interrupted_by(RuntimeError("plain"))
