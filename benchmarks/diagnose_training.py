@@ -19,6 +19,9 @@
       What the BRDF network's roughness and metallic heads do on every mask pixel of the first scenes: the share of
       outputs below zero before the ReLU (no gradient there when the loss is on the ReLU), the mean of prediction
       and truth, their correlation, and for metallic the mean prediction on metals (truth > 0.5) and on the rest.
+  python benchmarks/diagnose_training.py average --out AVG.safetensors W1 W2 [...]
+      The element-wise mean of weights of one network (config and card of W1), to score with networks.validate
+      (docs/training.md, session 5: averaging checkpoints did not help).
 """
 from __future__ import annotations
 
@@ -202,6 +205,18 @@ def brdf_outputs(data: str, init: str, scenes: int) -> None:
           f"{p[t <= 0.5].mean():.3f} on the rest")
 
 
+def average(out: str, weights: list[str]) -> None:
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    with safe_open(weights[0], "pt") as f:
+        meta = f.metadata()
+    states = [load_file(w) for w in weights]
+    mean = {k: (sum(s[k].float() for s in states) / len(states)).to(states[0][k].dtype) for k in states[0]}
+    save_file(mean, out, metadata=meta)
+    print(f"wrote {out}: mean of {len(weights)} weights")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="what", required=True)
@@ -220,11 +235,16 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("--data", required=True)
     b.add_argument("--init", default="networks/weights/brdf_small.safetensors", help="BRDF network weights")
     b.add_argument("--scenes", type=int, default=12)
+    a = sub.add_parser("average")
+    a.add_argument("--out", required=True)
+    a.add_argument("weights", nargs="+")
     args = ap.parse_args(argv)
     if args.what == "overfit":
         overfit(args.data, args.init, args.steps, args.lr, args.target)
     elif args.what == "self-calibrated":
         self_calibrated(args.data, args.init)
+    elif args.what == "average":
+        average(args.out, args.weights)
     elif args.what == "brdf-outputs":
         brdf_outputs(args.data, args.init, args.scenes)
     elif args.what == "albedo-bound":
