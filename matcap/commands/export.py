@@ -60,7 +60,8 @@ def run(args) -> int:
         source = read_result(args.result).with_constants(parse_constants(args.constant))
     paths = export(
         source, args.out, name=args.name or Path(args.result).resolve().name, preset=args.preset,
-        normal=args.normal, height=not args.no_height, mesh=args.mesh, overwrite=args.overwrite, glb=not args.no_glb, height_method=args.height_method,
+        normal=args.normal, height=not args.no_height, mesh=args.mesh, overwrite=args.overwrite, glb=not args.no_glb,
+        height_method=args.height_method,
         frame="fit" if args.fit_frame else "camera", occlusion=not args.no_ao, ao_radius=args.ao_radius,
     )
     for key, path in paths.items():
