@@ -19,6 +19,11 @@
       What the BRDF network's roughness and metallic heads do on every mask pixel of the first scenes: the share of
       outputs below zero before the ReLU (no gradient there when the loss is on the ReLU), the mean of prediction
       and truth, their correlation, and for metallic the mean prediction on metals (truth > 0.5) and on the rest.
+  python benchmarks/diagnose_training.py brdf-by-material --data DATA_TEST [--init W] [--assets ../shared/data]
+      Roughness and metallic error of the BRDF network per material group (objects / backdrop x the generator's
+      diffuse / specular / metallic category, found by re-rendering each scene's shapes from its spec.json with an
+      object-index pass), and the roughness RMSE of a predictor that is exact except on diffuse materials (specular
+      <= 0.3), where it predicts their mean: what is left of the constant if roughness cannot be seen there.
   python benchmarks/diagnose_training.py average --out AVG.safetensors W1 W2 [...]
       The element-wise mean of weights of one network (config and card of W1), to score with networks.validate
       (docs/training.md, session 5: averaging checkpoints did not help).
@@ -165,13 +170,28 @@ def self_calibrated(data: str, init: str) -> None:
         print(f"| {group} | {len(row['network'])} | " + " | ".join(f"{np.mean(row[k]):.2f}" for k in row) + " |")
 
 
+def _brdf_predictions(model, data: str, scenes: int | None):
+    """Per scene of ``data`` (the first ``scenes``): (scene folder, loaded scene, valid mask (H, W) bool, predicted
+    maps), the maps from one view of all stored images with the ground-truth mask, as validation predicts them."""
+    import torch
+
+    from networks.data import list_scenes, load_scene
+    from networks.inference import predict
+    from networks.preprocess import normalize_images
+
+    for path in list_scenes(data)[:scenes]:
+        scene = load_scene(path)
+        mask = scene["mask"].astype(bool)
+        m = torch.from_numpy(mask)
+        images = torch.from_numpy(scene["images"].astype(np.float32)).permute(0, 3, 1, 2)
+        out = predict(model, normalize_images(images, m.float().unsqueeze(0)), m, seed=0)
+        yield Path(path), scene, mask, out
+
+
 def brdf_outputs(data: str, init: str, scenes: int) -> None:
     import torch
 
     from networks.checkpoint import load_model
-    from networks.data import list_scenes, load_scene
-    from networks.inference import predict
-    from networks.preprocess import normalize_images
 
     torch.set_num_threads(1)
     model, _, _ = load_model(init)
@@ -182,16 +202,10 @@ def brdf_outputs(data: str, init: str, scenes: int) -> None:
     pre: dict[str, list] = {k: [] for k in heads}
     pred: dict[str, list] = {k: [] for k in heads}
     truth: dict[str, list] = {k: [] for k in heads}
-    for path in list_scenes(data)[:scenes]:
-        scene = load_scene(path)
-        mask = scene["mask"].astype(bool)
-        m = torch.from_numpy(mask)
-        images = torch.from_numpy(scene["images"].astype(np.float32)).permute(0, 3, 1, 2)
-        for v in raw.values():
-            v.clear()
-        out = predict(model, normalize_images(images, m.float().unsqueeze(0)), m, seed=0)
+    for _, scene, mask, out in _brdf_predictions(model, data, scenes):
         for key in heads:
             pre[key].append(torch.cat(raw[key]).numpy())
+            raw[key].clear()
             pred[key].append(out[key][mask].reshape(-1))
             truth[key].append(scene[key][mask].astype(np.float64).reshape(-1))
     print(f"{init} on the first {scenes} scenes of {data}")
@@ -203,6 +217,80 @@ def brdf_outputs(data: str, init: str, scenes: int) -> None:
     p, t = np.concatenate(pred["metallic"]), np.concatenate(truth["metallic"])
     print(f"metallic: mean prediction {p[t > 0.5].mean():.3f} on metals ({(t > 0.5).mean():.1%} of pixels), "
           f"{p[t <= 0.5].mean():.3f} on the rest")
+
+
+CATEGORIES = ("diffuse", "specular", "metallic")
+
+
+def material_groups(spec_json: dict, resolution: int, assets: str, cache: dict) -> np.ndarray:
+    """(H, W) int: per pixel, 2 * category index + (1 on the backdrop), -1 where no surface; categories as in
+    :data:`CATEGORIES` (the generator's material category of the visible shape)."""
+    from matcap.synth import AssetCache
+    from renderers.synth import render_object_index
+    from scenes.synth_build import RenderObject, object_geometry
+    from scenes.synth_spec import scene_from_dict
+
+    spec = scene_from_dict(spec_json)
+    assets_cache = cache.setdefault("assets", AssetCache(assets))
+    items = [(o, False) for o in spec.objects] + ([(spec.background, True)] if spec.background else [])
+    blank = np.zeros((2, 2), np.float32)
+    objects = [RenderObject(object_geometry(o, assets_cache.mesh(o.mesh) if o.shape == "mesh" else None),
+                            np.zeros((2, 2, 3), np.float32), blank, blank, o.material.specular, 1.0, bg)
+               for o, bg in items]
+    index = render_object_index(objects, resolution)
+    code = np.int16([2 * CATEGORIES.index(o.material.category) + int(bg) for o, bg in items] + [-1])
+    return code[index]  # index -1 picks the trailing -1
+
+
+def brdf_by_material(data: str, init: str, assets: str, scenes: int | None) -> None:
+    import json
+
+    import torch
+
+    from networks.checkpoint import load_model
+
+    torch.set_num_threads(1)
+    model, _, _ = load_model(init)
+    keys = ("roughness", "metallic")
+    groups, truth, pred = [], {k: [] for k in keys}, {k: [] for k in keys}
+    cache: dict = {}
+    for path, scene, mask, out in _brdf_predictions(model, data, scenes):
+        valid = mask & (np.linalg.norm(scene["normal"].astype(np.float64), axis=2) > 0.5)
+        g = material_groups(json.loads((path / "spec.json").read_text()), mask.shape[0], assets, cache)
+        if (g[valid] < 0).any():
+            raise SystemExit(f"{path}: the re-rendered shapes miss {(g[valid] < 0).sum()} valid pixels")
+        groups.append(g[valid])
+        for k in keys:
+            truth[k].append(scene[k][valid].astype(np.float64))
+            pred[k].append(out[k][valid].astype(np.float64))
+    g = np.concatenate(groups)
+    t = {k: np.concatenate(v) for k, v in truth.items()}
+    p = {k: np.concatenate(v) for k, v in pred.items()}
+
+    def rmse(a, b):
+        return float(np.sqrt(((a - b) ** 2).mean())) if a.size else float("nan")
+
+    print(f"{init} on {len(groups)} scenes of {data}: every valid pixel, grouped by the generator's material")
+    print("| surface | material | pixels | roughness truth mean (std) | roughness RMSE: network, constant "
+          "| metallic truth mean | metallic RMSE: network, constant |")
+    print("|---|---|---:|---:|---:|---:|---:|")
+    const = {k: t[k].mean() for k in keys}
+    rows = [(f"{'backdrop' if code % 2 else 'objects'}", CATEGORIES[code // 2], g == code) for code in range(6)]
+    for surface, cat, sel in rows + [("all", "all", np.ones_like(g, bool))]:
+        if not sel.any():
+            continue
+        r, m = t["roughness"][sel], t["metallic"][sel]
+        print(f"| {surface} | {cat} | {sel.mean():.1%} | {r.mean():.3f} ({r.std():.3f}) | "
+              f"{rmse(p['roughness'][sel], r):.3f}, {rmse(const['roughness'], r):.3f} | {m.mean():.3f} | "
+              f"{rmse(p['metallic'][sel], m):.3f}, {rmse(const['metallic'], m):.3f} |")
+    # If roughness cannot be seen on diffuse materials (specular <= 0.3), the best a predictor can do there is the
+    # mean over them; exact everywhere else.
+    diffuse = g // 2 == 0
+    bound = np.where(diffuse, t["roughness"][diffuse].mean(), t["roughness"])
+    c = rmse(const["roughness"], t["roughness"])
+    b = rmse(bound, t["roughness"])
+    print(f"roughness: best constant RMSE {c:.3f}; exact except on diffuse materials (their mean there) {b:.3f} "
+          f"({1 - b / c:.0%} below the constant); network {rmse(p['roughness'], t['roughness']):.3f}")
 
 
 def average(out: str, weights: list[str]) -> None:
@@ -235,6 +323,11 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("--data", required=True)
     b.add_argument("--init", default="networks/weights/brdf_small.safetensors", help="BRDF network weights")
     b.add_argument("--scenes", type=int, default=12)
+    m = sub.add_parser("brdf-by-material")
+    m.add_argument("--data", required=True)
+    m.add_argument("--init", default="networks/weights/brdf_small.safetensors", help="BRDF network weights")
+    m.add_argument("--assets", default="../shared/data", help="the assets the data was rendered from (meshes)")
+    m.add_argument("--scenes", type=int, help="the first N scenes (default: all)")
     a = sub.add_parser("average")
     a.add_argument("--out", required=True)
     a.add_argument("weights", nargs="+")
@@ -245,6 +338,8 @@ def main(argv: list[str] | None = None) -> int:
         self_calibrated(args.data, args.init)
     elif args.what == "average":
         average(args.out, args.weights)
+    elif args.what == "brdf-by-material":
+        brdf_by_material(args.data, args.init, args.assets, args.scenes)
     elif args.what == "brdf-outputs":
         brdf_outputs(args.data, args.init, args.scenes)
     elif args.what == "albedo-bound":

@@ -188,6 +188,25 @@ class SceneRenderer:
         }
 
 
+def render_object_index(objects: list[RenderObject], resolution: int) -> np.ndarray:
+    """(H, W) int16: at each pixel centre, the index into ``objects`` of the visible shape, -1 where none is.
+
+    One AOV pass with every shape given a constant diffuse reflectance that encodes its index (exact in float32),
+    for analyses that need per-pixel material parameters the stored maps do not keep (e.g. ``specular``).
+    """
+    mi = _mi()
+    if len(objects) > 1000:
+        raise ValueError(f"at most 1000 objects can be indexed, got {len(objects)}")
+    shapes = {}
+    for k, o in enumerate(objects):
+        bsdf = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [(k + 1) / 1024, 0, 0]}})
+        shapes[f"shape_{k:02d}"] = _make_mesh(mi, f"shape_{k:02d}", o, bsdf)
+    scene = mi.load_dict({"type": "scene", "sensor": _sensor(mi, resolution, 1, 0, centre=True), **shapes})
+    a = render_array(scene, mi.load_dict({"type": "aov", "aovs": "alb:albedo,dd:depth"}), spp=1, seed=0)
+    index = np.rint(a[..., 0] * 1024).astype(np.int16) - 1
+    return np.where(a[..., 3] > 0, index, -1).astype(np.int16)
+
+
 def render_scene(objects: list[RenderObject], basis: list[Light], envmaps: dict[str, np.ndarray], resolution: int,
                  spp: int = DEFAULT_SPP, seed: int = 0) -> SynthRender:
     """Render every basis light separately (environment maps at ``spp``, directional / point lights at half of it)

@@ -186,8 +186,13 @@ def _obj_from(d) -> ObjectSpec:
     return ObjectSpec(**d)
 
 
+# keys a stored scene's spec.json holds besides the spec itself (derived, or written by the renderer)
+DERIVED_KEYS = ("basis_kind", "ground_truth_stats")
+
+
 def scene_from_dict(d: dict[str, Any]) -> SceneSpec:
-    d = {k: v for k, v in d.items() if k != "basis_kind"}
+    """The spec of :meth:`SceneSpec.to_dict` or of a dataset's ``spec.json``."""
+    d = {k: v for k, v in d.items() if k not in DERIVED_KEYS}
     d["objects"] = [_obj_from(o) for o in d["objects"]]
     d["background"] = None if d.get("background") is None else _obj_from(d["background"])
     d["images"] = [ImageSpec(**i) for i in d["images"]]

@@ -72,6 +72,11 @@ def test_layout_resume_shards_and_settings_guard(tmp_path, capsys):
     assert np.abs(again - d["images"][0].astype(np.float32)).max() < 3e-3
     spec = json.loads((scene / "spec.json").read_text())
     assert spec["name"] == "scene_000001" and spec["index"] == 1
+    # the stored spec reads back into the spec that made the scene (its extra keys are derived)
+    from scenes.synth_spec import scene_from_dict
+
+    again = json.loads(json.dumps(scene_from_dict(spec).to_dict()))
+    assert again == {k: v for k, v in spec.items() if k != "ground_truth_stats"}
     assert not [p for p in os.listdir(out) if p.startswith(".tmp-")]
     # other settings into the same folder are refused
     assert _run("--out", str(out), "--scenes", "3", "--resolution", "64", "--seed", "4") == 2

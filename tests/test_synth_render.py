@@ -4,7 +4,7 @@ import pytest
 
 pytest.importorskip("mitsuba")
 
-from renderers.synth import SceneRenderer, render_scene
+from renderers.synth import SceneRenderer, render_object_index, render_scene
 from scenes import procedural as P
 from scenes.lights import DirectionalLight, EnvironmentLight, PointLight
 from scenes.synth_build import RenderObject, check_scene, finalize_normals
@@ -84,6 +84,19 @@ def test_ground_truth_and_determinism():
     assert np.allclose(r1.roughness[obj], 0.4, atol=1e-3)
     assert np.allclose(r1.base_color[~obj & r1.mask], 0.5, atol=1e-3)
     assert r1.stats["mask_agreement"] == 1.0
+
+
+
+def test_object_index_matches_the_ground_truth_masks():
+    objs = _objects()
+    gt = SceneRenderer(objs, 32, spp=1, seed=5).ground_truth()
+    index = render_object_index(objs, 32)
+    assert index.shape == (32, 32) and index.dtype == np.int16
+    assert np.array_equal(index == 0, gt["object_mask"])  # the sphere
+    assert np.array_equal(index == 1, gt["mask"] & ~gt["object_mask"])  # the backdrop
+    # nothing behind the shapes: -1 where the view is empty
+    index = render_object_index(objs[:1], 32)
+    assert set(np.unique(index)) == {-1, 0} and np.array_equal(index == 0, gt["object_mask"])
 
 
 # ----------------------------------------------------------------------------------------------- checks
