@@ -2,7 +2,11 @@
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
+import functools
+import inspect
+import textwrap
 from dataclasses import dataclass, field
 
 from networks.data import SampleSpec
@@ -84,40 +88,52 @@ def _three_floats(text: str) -> tuple[float, float, float]:
     return values
 
 
+@functools.lru_cache(maxsize=None)
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring under each field of a dataclass (the string literal after ``name: type = default``), with
+    whitespace collapsed: the one place a setting is described, shown by ``--help``."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body
+    docs = {}
+    for stmt, nxt in zip(body, body[1:]):
+        if (isinstance(stmt, ast.AnnAssign) and isinstance(stmt.target, ast.Name) and isinstance(nxt, ast.Expr)
+                and isinstance(nxt.value, ast.Constant) and isinstance(nxt.value.value, str)):
+            docs[stmt.target.id] = " ".join(nxt.value.value.split()).replace("%", "%%")
+    return docs
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """CLI flags for every TrainConfig field (shared by `matcap train` and `python -m networks.train`)."""
-    d = TrainConfig()
-    p.add_argument("--data", required=True, help="training dataset folder (matcap synth --split train)")
-    p.add_argument("--target", choices=("normal", "brdf"), default=d.target)
-    p.add_argument("--preset", choices=("paper", "small", "tiny"), default=d.preset)
-    p.add_argument("--out", default=d.out, help="run folder")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    """CLI flags for every TrainConfig field (shared by `matcap train` and `python -m networks.train`); their help is
+    the field's docstring."""
+    d, s = TrainConfig(), SampleSpec()
+    docs = {**field_docs(TrainConfig), **field_docs(SampleSpec)}
+
+    def flag(name: str, **kw) -> None:
+        value = getattr(d, name) if hasattr(d, name) else getattr(s, name)
+        shown = "" if kw.get("action") or kw.get("required") or value == "" else f" (default: {value})"
+        p.add_argument(f"--{name.replace('_', '-')}", default=value, help=kw.pop("help", docs[name] + shown), **kw)
+
+    flag("data", required=True)
+    flag("target", choices=("normal", "brdf"))
+    flag("preset", choices=("paper", "small", "tiny"))
+    flag("out")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt (model, optimiser, "
+                   "schedule and data order: bit-for-bit where it stopped)")
     p.add_argument("--init", help="start from these weights (.safetensors) instead of random init")
-    p.add_argument("--canonical-resolution", type=int, default=d.canonical_resolution,
-                   help="encoder canonical resolution (0 = the --init weights', else the preset's)")
-    p.add_argument("--dropout", type=float, default=d.dropout,
-                   help="attention dropout (<0 = the --init weights', else the preset's)")
-    for name in ("steps", "batch", "warmup_steps", "decay_every", "log_every", "seed", "threads", "workers",
-                 "val_scenes"):
-        p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(d, name))
-    for name in ("lr", "weight_decay", "decay_factor", "grad_clip", "val_every_s", "checkpoint_every_s"):
-        p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(d, name))
-    s = SampleSpec()
-    for name in ("resolution", "min_images", "max_images", "pixel_samples"):
-        p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(s, name))
-    for name in ("fresh_combination_prob", "drop_mask_prob", "min_crop"):
-        p.add_argument(f"--{name.replace('_', '-')}", type=float, default=getattr(s, name))
-    p.add_argument("--brdf-weights", type=_three_floats, default=d.brdf_weights, metavar="B,R,M",
-                   help="BRDF net: loss weights of base color, roughness, metallic (default 1,1,1)")
-    p.add_argument("--brdf-loss-before-relu", action="store_true",
-                   help="BRDF net: loss on the heads' outputs before the ReLU (keeps a gradient below zero)")
+    for name in ("canonical_resolution", "steps", "batch", "warmup_steps", "decay_every", "log_every", "seed",
+                 "threads", "workers", "val_scenes", "resolution", "min_images", "max_images", "pixel_samples"):
+        flag(name, type=int)
+    for name in ("dropout", "lr", "weight_decay", "decay_factor", "grad_clip", "val_every_s", "checkpoint_every_s",
+                 "fresh_combination_prob", "drop_mask_prob", "min_crop"):
+        flag(name, type=float)
+    flag("brdf_weights", type=_three_floats, metavar="B,R,M",
+         help=docs["brdf_weights"] + " (default: 1,1,1)")
+    flag("brdf_loss_before_relu", action="store_true")
     p.add_argument("--no-dihedral", dest="dihedral", action="store_false",
-                   help="no random mirror / 90-degree rotation augmentation")
-    p.add_argument("--val-data", default="",
-                   help="validation dataset that chooses the best checkpoint (a `--split test` set kept apart "
-                        "from the one you report)")
-    p.add_argument("--device", default=d.device)
-    p.add_argument("--bf16", action="store_true")
+                   help="no random mirror / 90-degree rotation augmentation (default: on): " + docs["dihedral"])
+    flag("val_data")
+    flag("device")
+    flag("bf16", action="store_true")
     p.add_argument("--save-all-ranks", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 

@@ -297,3 +297,26 @@ def test_init_weights_bring_their_canonical_resolution_and_dropout(tiny_dataset,
         train(_tc(tiny_dataset, tmp_path / "c", canonical_resolution=128, val_data=str(tiny_val_dataset)),
               progress=False)
     assert not (tmp_path / "c" / "checkpoint.pt").exists()
+
+
+def test_every_setting_has_a_flag_whose_help_is_its_docstring():
+    import argparse
+    import dataclasses
+
+    from networks.trainconfig import add_arguments, config_from_args, field_docs
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    actions = {a.dest: a for a in p._actions}
+    settings = [f.name for f in dataclasses.fields(TrainConfig) if f.name != "sample"]
+    settings += [f.name for f in dataclasses.fields(SampleSpec)]
+    docs = {**field_docs(TrainConfig), **field_docs(SampleSpec)}
+    assert set(docs) == set(settings) | {"sample"}  # every field is documented
+    for name in settings:
+        if name == "save_all_ranks":
+            continue
+        words = " ".join(docs[name].split()[:4])
+        assert words in actions[name].help, (name, actions[name].help)
+    assert "(default: 0.05)" in actions["weight_decay"].help
+    # the defaults of the flags are the dataclass defaults
+    assert config_from_args(p.parse_args(["--data", "D"])) == TrainConfig(data="D")
