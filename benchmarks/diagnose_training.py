@@ -87,8 +87,8 @@ def _truth(data: str) -> dict[str, list[np.ndarray]]:
     for path in list_scenes(data):
         with np.load(Path(path) / "data.npz") as z:
             valid = z["mask"] & (np.linalg.norm(z["normal"].astype(np.float64), axis=2) > 0.5)
-            for key in out:
-                out[key].append(z[key].astype(np.float64)[valid])
+            for key, values in out.items():
+                values.append(z[key].astype(np.float64)[valid])
     return out
 
 
@@ -271,8 +271,8 @@ def brdf_by_material(data: str, init: str, assets: str, scenes: int | None) -> N
         return float(np.sqrt(((a - b) ** 2).mean())) if a.size else float("nan")
 
     print(f"{init} on {len(groups)} scenes of {data}: every valid pixel, grouped by the generator's material")
-    print("| surface | material | pixels | roughness truth mean (std) | roughness RMSE: network, constant "
-          "| metallic truth mean | metallic RMSE: network, constant |")
+    print("| surface | material | pixels | roughness mean: truth (std), network | roughness RMSE: network, constant "
+          "| metallic mean: truth, network | metallic RMSE: network, constant |")
     print("|---|---|---:|---:|---:|---:|---:|")
     const = {k: t[k].mean() for k in keys}
     rows = [(f"{'backdrop' if code % 2 else 'objects'}", CATEGORIES[code // 2], g == code) for code in range(6)]
@@ -280,8 +280,9 @@ def brdf_by_material(data: str, init: str, assets: str, scenes: int | None) -> N
         if not sel.any():
             continue
         r, m = t["roughness"][sel], t["metallic"][sel]
-        print(f"| {surface} | {cat} | {sel.mean():.1%} | {r.mean():.3f} ({r.std():.3f}) | "
-              f"{rmse(p['roughness'][sel], r):.3f}, {rmse(const['roughness'], r):.3f} | {m.mean():.3f} | "
+        print(f"| {surface} | {cat} | {sel.mean():.1%} | {r.mean():.3f} ({r.std():.3f}), "
+              f"{p['roughness'][sel].mean():.3f} | {rmse(p['roughness'][sel], r):.3f}, {rmse(const['roughness'], r):.3f} "
+              f"| {m.mean():.3f}, {p['metallic'][sel].mean():.3f} | "
               f"{rmse(p['metallic'][sel], m):.3f}, {rmse(const['metallic'], m):.3f} |")
     # If roughness cannot be seen on diffuse materials (specular <= 0.3), the best a predictor can do there is the
     # mean over them; exact everywhere else.
