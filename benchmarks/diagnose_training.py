@@ -24,6 +24,8 @@
       diffuse / specular / metallic category, found by re-rendering each scene's shapes from its spec.json with an
       object-index pass), and the roughness RMSE of a predictor that is exact except on diffuse materials (specular
       <= 0.3), where it predicts their mean: what is left of the constant if roughness cannot be seen there.
+  python benchmarks/diagnose_training.py normal-by-material --data DATA_TEST [--init W] [--assets ../shared/data]
+      Mean angular error of the normal network per lighting group and material group (as brdf-by-material).
   python benchmarks/diagnose_training.py average --out AVG.safetensors W1 W2 [...]
       The element-wise mean of weights of one network (config and card of W1), to score with networks.validate
       (docs/training.md, session 5: averaging checkpoints did not help).
@@ -170,9 +172,9 @@ def self_calibrated(data: str, init: str) -> None:
         print(f"| {group} | {len(row['network'])} | " + " | ".join(f"{np.mean(row[k]):.2f}" for k in row) + " |")
 
 
-def _brdf_predictions(model, data: str, scenes: int | None):
-    """Per scene of ``data`` (the first ``scenes``): (scene folder, loaded scene, valid mask (H, W) bool, predicted
-    maps), the maps from one view of all stored images with the ground-truth mask, as validation predicts them."""
+def _predictions(model, data: str, scenes: int | None):
+    """Per scene of ``data`` (the first ``scenes``): (scene folder, loaded scene, mask (H, W) bool, predicted maps),
+    the maps from one view of all stored images with the ground-truth mask, as validation predicts them."""
     import torch
 
     from networks.data import list_scenes, load_scene
@@ -202,7 +204,7 @@ def brdf_outputs(data: str, init: str, scenes: int) -> None:
     pre: dict[str, list] = {k: [] for k in heads}
     pred: dict[str, list] = {k: [] for k in heads}
     truth: dict[str, list] = {k: [] for k in heads}
-    for _, scene, mask, out in _brdf_predictions(model, data, scenes):
+    for _, scene, mask, out in _predictions(model, data, scenes):
         for key in heads:
             pre[key].append(torch.cat(raw[key]).numpy())
             raw[key].clear()
@@ -254,7 +256,7 @@ def brdf_by_material(data: str, init: str, assets: str, scenes: int | None) -> N
     keys = ("roughness", "metallic")
     groups, truth, pred = [], {k: [] for k in keys}, {k: [] for k in keys}
     cache: dict = {}
-    for path, scene, mask, out in _brdf_predictions(model, data, scenes):
+    for path, scene, mask, out in _predictions(model, data, scenes):
         valid = mask & (np.linalg.norm(scene["normal"].astype(np.float64), axis=2) > 0.5)
         g = material_groups(json.loads((path / "spec.json").read_text()), mask.shape[0], assets, cache)
         if (g[valid] < 0).any():
@@ -294,6 +296,43 @@ def brdf_by_material(data: str, init: str, assets: str, scenes: int | None) -> N
           f"({1 - b / c:.0%} below the constant); network {rmse(p['roughness'], t['roughness']):.3f}")
 
 
+def normal_by_material(data: str, init: str, assets: str, scenes: int | None) -> None:
+    import json
+
+    import torch
+
+    from networks.checkpoint import load_model
+
+    torch.set_num_threads(1)
+    model, _, _ = load_model(init)
+    rows: dict[tuple[str, str], list[np.ndarray]] = {}
+    cache: dict = {}
+    for path, scene, mask, out in _predictions(model, data, scenes):
+        truth = scene["normal"].astype(np.float64)
+        valid = mask & (np.linalg.norm(truth, axis=2) > 0.5)
+        g = material_groups(json.loads((path / "spec.json").read_text()), mask.shape[0], assets, cache)
+        cos = np.clip((out["normal"].astype(np.float64) * truth).sum(-1), -1, 1)
+        err = np.degrees(np.arccos(cos))
+        group = json.loads((path / "spec.json").read_text()).get("lighting_group", "?")
+        for code in range(6):
+            sel = valid & (g == code)
+            rows.setdefault((group, code), []).append(err[sel])
+    print(f"{init} on {data}: mean angular error (degrees) over the valid pixels of each lighting group and material "
+          "group (pixel-weighted, so it differs from validation's mean of per-scene means)")
+    groups = sorted({k[0] for k in rows})
+    print("| surface | material | " + " | ".join(groups) + " | all | share of pixels |")
+    print("|---|---|" + "---:|" * (len(groups) + 2))
+    total = sum(sum(a.size for a in v) for v in rows.values())
+    for code in range(6):
+        cells = [np.concatenate(rows.get((grp, code), [np.zeros(0)])) for grp in groups]
+        both = np.concatenate(cells)
+        if not both.size:
+            continue
+        print(f"| {'backdrop' if code % 2 else 'objects'} | {CATEGORIES[code // 2]} | "
+              + " | ".join(f"{c.mean():.2f}" if c.size else "-" for c in cells) + f" | {both.mean():.2f} | "
+              f"{both.size / total:.1%} |")
+
+
 def average(out: str, weights: list[str]) -> None:
     from safetensors import safe_open
     from safetensors.torch import load_file, save_file
@@ -329,6 +368,11 @@ def main(argv: list[str] | None = None) -> int:
     m.add_argument("--init", default="networks/weights/brdf_small.safetensors", help="BRDF network weights")
     m.add_argument("--assets", default="../shared/data", help="the assets the data was rendered from (meshes)")
     m.add_argument("--scenes", type=int, help="the first N scenes (default: all)")
+    n = sub.add_parser("normal-by-material")
+    n.add_argument("--data", required=True)
+    n.add_argument("--init", default="networks/weights/normal_small.safetensors", help="normal network weights")
+    n.add_argument("--assets", default="../shared/data", help="the assets the data was rendered from (meshes)")
+    n.add_argument("--scenes", type=int, help="the first N scenes (default: all)")
     a = sub.add_parser("average")
     a.add_argument("--out", required=True)
     a.add_argument("weights", nargs="+")
@@ -341,6 +385,8 @@ def main(argv: list[str] | None = None) -> int:
         average(args.out, args.weights)
     elif args.what == "brdf-by-material":
         brdf_by_material(args.data, args.init, args.assets, args.scenes)
+    elif args.what == "normal-by-material":
+        normal_by_material(args.data, args.init, args.assets, args.scenes)
     elif args.what == "brdf-outputs":
         brdf_outputs(args.data, args.init, args.scenes)
     elif args.what == "albedo-bound":
