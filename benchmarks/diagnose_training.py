@@ -26,6 +26,9 @@
       <= 0.3), where it predicts their mean: what is left of the constant if roughness cannot be seen there.
   python benchmarks/diagnose_training.py normal-by-material --data DATA_TEST [--init W] [--assets ../shared/data]
       Mean angular error of the normal network per lighting group and material group (as brdf-by-material).
+  python benchmarks/diagnose_training.py head-refit --data DATA --val-data DATA_VAL [--init W] [--scenes 150]
+      A rejected shortcut: refit each BRDF head's last linear layer by ridge least squares (lambda 0.1) on the
+      regressor's features of random training scenes, and compare its validation RMSE with the trained head's.
   python benchmarks/diagnose_training.py average --out AVG.safetensors W1 W2 [...]
       The element-wise mean of weights of one network (config and card of W1), to score with networks.validate
       (docs/training.md, session 5: averaging checkpoints did not help).
@@ -333,6 +336,88 @@ def normal_by_material(data: str, init: str, assets: str, scenes: int | None) ->
               f"{both.size / total:.1%} |")
 
 
+def _regressor_features(model, path: Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The regressor's per-pixel features (P, dim) (what every prediction head reads) at the valid pixels of one
+    scene, their flat pixel indices (P,), and the loaded scene; predicted as :func:`networks.inference.predict` does."""
+    import torch
+
+    from networks.data import load_scene
+    from networks.preprocess import normalize_images
+
+    scene = load_scene(path)
+    mask = scene["mask"].astype(bool)
+    valid = (mask & (np.linalg.norm(scene["normal"].astype(np.float64), axis=2) > 0.5)).reshape(-1)
+    m = torch.from_numpy(mask)
+    x = normalize_images(torch.from_numpy(scene["images"].astype(np.float32)).permute(0, 3, 1, 2),
+                         m.float().unsqueeze(0))[None]
+    mk = m[None, None].float()
+    ids = torch.nonzero(m.reshape(-1)).squeeze(1)
+    ids = ids[torch.randperm(ids.numel(), generator=torch.Generator().manual_seed(0))]
+    got: list = []
+    hook = model.regressor.comm.register_forward_hook(lambda _m, _i, out: got.append(out.detach().float()[0]))
+    try:
+        with torch.inference_mode():
+            feats = model.encode(x, mk)
+            for start in range(0, ids.numel(), model.config.pixel_samples):
+                model.decode(x, mk, feats, ids[start:start + model.config.pixel_samples][None])
+    finally:
+        hook.remove()
+    f, idx = torch.cat(got).numpy(), ids.numpy()
+    keep = valid[idx]
+    return f[keep], idx[keep], scene
+
+
+def head_refit(fit_data: str, val_data: str, init: str, fit_scenes: int, per_scene: int) -> None:
+    """Refit each BRDF head's last linear layer by (ridge) least squares on features of ``fit_scenes`` random scenes
+    of ``fit_data`` (``per_scene`` random valid pixels each) and score it on every valid pixel of ``val_data``."""
+    import torch
+
+    from networks.checkpoint import load_model
+    from networks.data import list_scenes
+
+    torch.set_num_threads(1)
+    model, _, _ = load_model(init)
+    model.eval()
+    heads = {"base_color": "prediction_base", "roughness": "prediction_rough", "metallic": "prediction_metal"}
+
+    def collect(paths, limit, rng):
+        feats, truth = [], {k: [] for k in heads}
+        for path in paths:
+            f, idx, scene = _regressor_features(model, Path(path))
+            if limit and len(idx) > limit:
+                pick = rng.choice(len(idx), limit, replace=False)
+                f, idx = f[pick], idx[pick]
+            feats.append(f)
+            for key, values in truth.items():
+                values.append(scene[key].reshape(-1, *scene[key].shape[2:])[idx].astype(np.float64))
+        return np.concatenate(feats).astype(np.float64), {k: np.concatenate(v) for k, v in truth.items()}
+
+    paths = list_scenes(fit_data)
+    pick = np.random.default_rng(1).choice(len(paths), min(fit_scenes, len(paths)), replace=False)
+    f_fit, t_fit = collect([paths[i] for i in pick], per_scene, np.random.default_rng(0))
+    f_val, t_val = collect(list_scenes(val_data), 0, None)
+
+    def rmse(pred, truth):
+        return float(np.sqrt(((np.maximum(pred, 0) - truth) ** 2).mean()))
+
+    print(f"{init}: last layers refit on {len(pick)} scenes of {fit_data} ({len(f_fit)} pixels), scored on "
+          f"{val_data} ({len(f_val)} pixels); RMSE after the ReLU")
+    print("| map | constant | network head | refit: validation | refit: fit data | network head: fit data |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for key, name in heads.items():
+        seq = getattr(model.regressor, name).regression
+        w1, b1 = seq[0].weight.detach().double().numpy(), seq[0].bias.detach().double().numpy()
+        w2, b2 = seq[2].weight.detach().double().numpy(), seq[2].bias.detach().double().numpy()
+        h_fit, h_val = (np.hstack([np.maximum(f @ w1.T + b1, 0), np.ones((len(f), 1))]) for f in (f_fit, f_val))
+        t = t_fit[key].reshape(len(h_fit), -1)
+        sol = np.linalg.solve(h_fit.T @ h_fit + 0.1 * np.eye(h_fit.shape[1]), h_fit.T @ t)
+        head = np.vstack([w2.T, b2[None]])
+        tv = t_val[key].reshape(len(h_val), -1)
+        const = float(np.sqrt(((tv - tv.mean(0)) ** 2).mean()))
+        print(f"| {key} | {const:.4f} | {rmse(h_val @ head, tv):.4f} | {rmse(h_val @ sol, tv):.4f} | "
+              f"{rmse(h_fit @ sol, t):.4f} | {rmse(h_fit @ head, t):.4f} |")
+
+
 def average(out: str, weights: list[str]) -> None:
     from safetensors import safe_open
     from safetensors.torch import load_file, save_file
@@ -373,6 +458,12 @@ def main(argv: list[str] | None = None) -> int:
     n.add_argument("--init", default="networks/weights/normal_small.safetensors", help="normal network weights")
     n.add_argument("--assets", default="../shared/data", help="the assets the data was rendered from (meshes)")
     n.add_argument("--scenes", type=int, help="the first N scenes (default: all)")
+    h = sub.add_parser("head-refit")
+    h.add_argument("--data", required=True, help="scenes to refit on (the training data)")
+    h.add_argument("--val-data", required=True)
+    h.add_argument("--init", default="networks/weights/brdf_small.safetensors", help="BRDF network weights")
+    h.add_argument("--scenes", type=int, default=150, help="random scenes of --data to refit on")
+    h.add_argument("--pixels", type=int, default=3000, help="random valid pixels per refit scene")
     a = sub.add_parser("average")
     a.add_argument("--out", required=True)
     a.add_argument("weights", nargs="+")
@@ -387,6 +478,8 @@ def main(argv: list[str] | None = None) -> int:
         brdf_by_material(args.data, args.init, args.assets, args.scenes)
     elif args.what == "normal-by-material":
         normal_by_material(args.data, args.init, args.assets, args.scenes)
+    elif args.what == "head-refit":
+        head_refit(args.data, args.val_data, args.init, args.scenes, args.pixels)
     elif args.what == "brdf-outputs":
         brdf_outputs(args.data, args.init, args.scenes)
     elif args.what == "albedo-bound":

@@ -162,17 +162,18 @@ def unpack(packs: list[str | Path], out: str | Path) -> int:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m networks.datapack", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
-    a = sub.add_parser("pack")
-    a.add_argument("data")
-    a.add_argument("out_dir")
-    a.add_argument("--max-mb", type=float, default=40.0)
-    a.add_argument("--start", type=int, default=0)
-    a.add_argument("--count", type=int, default=None)
+    a = sub.add_parser("pack", help="write packs of a dataset's scenes")
+    a.add_argument("data", help="a `matcap synth` dataset folder")
+    a.add_argument("out_dir", help="folder for the packs (created)")
+    a.add_argument("--max-mb", type=float, default=40.0,
+                   help="start a new pack before one would exceed this many MB (default 40)")
+    a.add_argument("--start", type=int, default=0, help="first scene to pack, in the dataset's order (default 0)")
+    a.add_argument("--count", type=int, default=None, help="pack at most this many scenes (default: all from --start)")
     a.add_argument("--quality", type=int, default=0,
                    help="store basis renders as lossy WebP of this quality (1-100; ~3x smaller at 95); 0 = lossless")
-    b = sub.add_parser("unpack")
-    b.add_argument("packs", nargs="+")
-    b.add_argument("--out", required=True)
+    b = sub.add_parser("unpack", help="unpack packs into a dataset folder training reads")
+    b.add_argument("packs", nargs="+", help="pack files (.npz) written by `pack`")
+    b.add_argument("--out", required=True, help="dataset folder to write scene_*/ into")
     args = p.parse_args(argv)
     try:
         if args.cmd == "pack":
