@@ -92,7 +92,10 @@ def _three_floats(text: str) -> tuple[float, float, float]:
 def field_docs(cls: type) -> dict[str, str]:
     """The docstring under each field of a dataclass (the string literal after ``name: type = default``), with
     whitespace collapsed: the one place a setting is described, shown by ``--help``."""
-    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    except (OSError, TypeError):  # no source to read (a frozen install): flags without help text
+        return {}
     body = tree.body[0].body
     docs = {}
     for stmt, nxt in zip(body, body[1:]):
@@ -111,7 +114,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     def flag(name: str, **kw) -> None:
         value = getattr(d, name) if hasattr(d, name) else getattr(s, name)
         shown = "" if kw.get("action") or kw.get("required") or value == "" else f" (default: {value})"
-        p.add_argument(f"--{name.replace('_', '-')}", default=value, help=kw.pop("help", docs[name] + shown), **kw)
+        p.add_argument(f"--{name.replace('_', '-')}", default=value, help=kw.pop("help", docs.get(name, "") + shown), **kw)
 
     flag("data", required=True)
     flag("target", choices=("normal", "brdf"))
@@ -127,10 +130,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                  "fresh_combination_prob", "drop_mask_prob", "min_crop"):
         flag(name, type=float)
     flag("brdf_weights", type=_three_floats, metavar="B,R,M",
-         help=docs["brdf_weights"] + " (default: 1,1,1)")
+         help=docs.get("brdf_weights", "") + " (default: 1,1,1)")
     flag("brdf_loss_before_relu", action="store_true")
     p.add_argument("--no-dihedral", dest="dihedral", action="store_false",
-                   help="no random mirror / 90-degree rotation augmentation (default: on): " + docs["dihedral"])
+                   help="no random mirror / 90-degree rotation augmentation (default: on). " + docs.get("dihedral", ""))
     flag("val_data")
     flag("device")
     flag("bf16", action="store_true")
