@@ -88,7 +88,7 @@ def _three_floats(text: str) -> tuple[float, float, float]:
     return values
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def field_docs(cls: type) -> dict[str, str]:
     """The docstring under each field of a dataclass (the string literal after ``name: type = default``), with
     whitespace collapsed: the one place a setting is described, shown by ``--help``."""
