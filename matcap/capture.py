@@ -381,23 +381,49 @@ def _check_max_side(max_side: int) -> None:
         raise MatcapError(f"--max-side must be at least 16, got {max_side}")
 
 
-def downscale(cap: Capture, max_side: int) -> Capture:
-    """``cap`` with images (area-averaged in linear light) and mask shrunk so that the longer side is at most
-    ``max_side`` pixels, keeping the aspect ratio; unchanged when it already fits."""
+def downscale_arrays(images: list[np.ndarray], mask: np.ndarray | None, max_side: int):
+    """``(images, mask)`` shrunk so that the longer side is at most ``max_side`` pixels, keeping the aspect ratio:
+    images (H, W, 3) area-averaged in linear light, mask (H, W) bool by area coverage > 0.5. Unchanged (the same
+    objects) when they already fit."""
     _check_max_side(max_side)
-    h, w = cap.images[0].shape[:2]
+    h, w = images[0].shape[:2]
     if max(h, w) <= max_side:
-        return cap
+        return images, mask
     import cv2
 
     s = max_side / max(h, w)
     size = (max(1, round(w * s)), max(1, round(h * s)))  # cv2: (width, height)
-    images = [cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in cap.images]
-    mask = None
-    if cap.mask is not None:
-        mask = cv2.resize(cap.mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
+    small = [cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in images]
+    if mask is not None:
+        mask = cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
         if not mask.any():
             raise MatcapError(f"the mask vanishes at --max-side {max_side}; use a larger value")
+    return small, mask
+
+
+def upscale_normals(normal: np.ndarray, size_hw: tuple[int, int], mask: np.ndarray | None = None) -> np.ndarray:
+    """(h, w, 3) unit normals (zero outside their mask) to (H, W, 3): bilinear, renormalised; pixels with no normal
+    nearby face the camera; zero outside ``mask`` (H, W) when given."""
+    import cv2
+
+    h, w = size_hw
+    if normal.shape[:2] == (h, w):
+        up = normal.astype(np.float32)
+    else:
+        up = cv2.resize(normal.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+    norm = np.linalg.norm(up, axis=-1, keepdims=True)
+    out = np.where(norm > 1e-6, up / np.maximum(norm, 1e-6), np.float32([0, 0, 1])).astype(np.float32)
+    if mask is not None:
+        out[~mask.astype(bool)] = 0
+    return out
+
+
+def downscale(cap: Capture, max_side: int) -> Capture:
+    """``cap`` with images (area-averaged in linear light) and mask shrunk so that the longer side is at most
+    ``max_side`` pixels, keeping the aspect ratio; unchanged when it already fits."""
+    images, mask = downscale_arrays(cap.images, cap.mask, max_side)
+    if images is cap.images:
+        return cap
     return dataclasses.replace(cap, images=images, mask=mask)
 
 

@@ -106,10 +106,53 @@ def test_learned_method_gets_images_lazily(dataset, tmp_path, monkeypatch, capsy
     assert row["mae"] == pytest.approx(tilt, abs=1e-3)
 
 
+def test_max_side_feeds_the_network_small_images_and_scores_at_full_size(dataset, tmp_path, monkeypatch):
+    from matcap import capture as real
+
+    shapes = []
+
+    def estimate(images, mask, *, weights=None, max_images=None, seed=0, device="cpu", views=1, progress=False):
+        shapes.append((images[0].shape, mask.shape, views))
+        return types.SimpleNamespace(normal=np.where(mask[:, :, None], [0.0, 0.0, 1.0], 0.0))
+
+    fake = types.ModuleType("matcap.capture")
+    fake.estimate = estimate
+    fake.downscale_arrays, fake.upscale_normals = real.downscale_arrays, real.upscale_normals
+    monkeypatch.setitem(sys.modules, "matcap.capture", fake)
+    monkeypatch.setattr(matcap, "capture", fake, raising=False)
+    js = tmp_path / "r.json"
+    rc = main(["eval", str(dataset), "--method", "sdm-unips", "--objects", "spherePNG", "--max-side", "16",
+               "--views", "2", "--json", str(js), "--quiet"])
+    assert rc == 0
+    assert shapes == [((16, 16, 3), (16, 16), 2)]  # the 32x32 sphere, halved
+    report = json.loads(js.read_text())
+    assert report["protocol"]["max_side"] == 16 and "--max-side 16" in report["command"]
+    assert "--views 2" in report["command"]
+    (row,) = report["objects"]
+    # flat normals scored at 32x32 against the sphere's: the same error as flat normals at full size
+    rc = main(["eval", str(dataset), "--method", "flat", "--objects", "spherePNG", "--json", str(js), "--quiet"])
+    assert row["mae"] == pytest.approx(json.loads(js.read_text())["objects"][0]["mae"], abs=1e-6)
+
+
+def test_upscale_normals_keeps_unit_length_and_the_mask():
+    from matcap.capture import upscale_normals
+
+    small = np.zeros((4, 4, 3), np.float32)
+    small[1:3, 1:3] = np.float32([0.6, 0.0, 0.8])
+    mask = np.zeros((8, 8), bool)
+    mask[2:6, 2:6] = True
+    up = upscale_normals(small, (8, 8), mask)
+    assert up.shape == (8, 8, 3) and np.all(up[~mask] == 0)
+    np.testing.assert_allclose(up[mask], np.tile([0.6, 0.0, 0.8], (16, 1)), atol=1e-6)
+    # no normal nearby: faces the camera
+    assert np.allclose(upscale_normals(np.zeros((2, 2, 3), np.float32), (4, 4)), [0, 0, 1])
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--objects", "nope"], "unknown object(s) nope"),
     (["--reference", "least-squares"], "--reference must differ"),
     (["--method", "least-squares", "--max-images", "2"], "at least 3"),
+    (["--method", "sdm-unips", "--max-side", "8"], "--max-side must be at least 16"),
 ])
 def test_bad_input_is_one_line_exit_2(dataset, capsys, argv, message):
     assert main(["eval", str(dataset), "--quiet", *argv]) == 2

@@ -42,6 +42,9 @@ def register(sub) -> None:
     p.add_argument("--device", default="cpu", help="torch device for sdm-unips (default cpu)")
     p.add_argument("--views", type=int, choices=(1, 2, 4, 8), default=1,
                    help="sdm-unips: test-time augmentation views, as in `matcap capture --views` (default 1)")
+    p.add_argument("--max-side", type=_positive, metavar="PX",
+                   help="sdm-unips: shrink the images so that their longer side is at most PX, as `matcap capture "
+                        "--max-side` does, and scale the normals back to full size for scoring")
     p.add_argument("--out", metavar="DIR",
                    help="write results.md, results.json and error_maps/<object>.png (0-90 deg) here")
     p.add_argument("--json", metavar="FILE", help="also write the JSON report to FILE (atomically)")
@@ -63,6 +66,10 @@ def command_line(args) -> str:
         parts += ["--split", args.split]
     for w in args.weights or []:
         parts += ["--weights", w]
+    if args.views != 1:
+        parts += ["--views", str(args.views)]
+    if args.max_side is not None:
+        parts += ["--max-side", str(args.max_side)]
     return " ".join(shlex.quote(p) for p in parts)
 
 
@@ -87,7 +94,7 @@ def run(args) -> int:
     report = runner.evaluate(
         args.dataset, args.method, args.reference, objects=objects, max_images=args.max_images,
         trials=args.trials, seed=args.seed, weights=args.weights, device=args.device,
-        views=args.views, error_map_dir=(out / "error_maps") if out else None, split=args.split,
+        views=args.views, max_side=args.max_side, error_map_dir=(out / "error_maps") if out else None, split=args.split,
         command=command_line(args),
         log=None if args.quiet else runner.stderr_log,
     )

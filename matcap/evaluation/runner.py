@@ -42,6 +42,7 @@ class MethodContext:
     weights: list[str] | None = None
     device: str = "cpu"
     views: int = 1  # test-time augmentation of the network (capture.estimate(views=...))
+    max_side: int | None = None  # network input shrunk to this longer side, normals scaled back (capture --max-side)
     state: dict[str, Any] | None = None  # lazily loaded things (networks), kept across objects
 
 
@@ -77,9 +78,15 @@ def _run_sdm_unips(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext
             state["models"] = capture.load_networks(ctx.weights, ctx.device)
             state["load_s"] = time.perf_counter() - t0
         kwargs["models"] = state["models"]
-    maps = capture.estimate(obj.network_images(idx), obj.mask, weights=ctx.weights, max_images=None, seed=seed,
+    images, mask = obj.network_images(idx), obj.mask
+    if ctx.max_side is not None:
+        images, mask = capture.downscale_arrays(images, mask, ctx.max_side)
+    maps = capture.estimate(images, mask, weights=ctx.weights, max_images=None, seed=seed,
                             device=ctx.device, views=ctx.views, progress=False, **kwargs)
-    return np.asarray(maps.normal, dtype=np.float32)
+    normal = np.asarray(maps.normal, dtype=np.float32)
+    if normal.shape[:2] != obj.mask.shape:  # scored at the object's own size, like every other method
+        normal = capture.upscale_normals(normal, obj.mask.shape, obj.mask)
+    return normal
 
 
 def _run_flat(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext) -> np.ndarray:
@@ -218,7 +225,7 @@ def summarize_groups(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 def evaluate(dataset: str | Path, method: str = "least-squares", reference: str | None = None, *,
              objects: list[str] | None = None, max_images: int | None = None, trials: int = 10, seed: int = 0,
-             weights: list[str] | None = None, device: str = "cpu", views: int = 1,
+             weights: list[str] | None = None, device: str = "cpu", views: int = 1, max_side: int | None = None,
              error_map_dir: str | Path | None = None,
              split: str | None = "test", command: str | None = None,
              log: Callable[[str], None] | None = None) -> dict[str, Any]:
@@ -238,7 +245,9 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
         if missing:
             raise MatcapError(f"unknown object(s) {', '.join(missing)}; found: {', '.join(sorted(names))}")
         sources = [s for s in sources if s.name in set(objects)]
-    ctx = MethodContext(weights=weights, device=device, views=views, state={})
+    if max_side is not None and max_side < 16:
+        raise MatcapError(f"--max-side must be at least 16, got {max_side}")
+    ctx = MethodContext(weights=weights, device=device, views=views, max_side=max_side, state={})
     rows = []
     t_start = time.perf_counter()
     for i, src in enumerate(sources):
@@ -259,7 +268,7 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
         "method_description": m.description,
         "against": ref.name if ref else "ground truth",
         "protocol": {
-            "max_images": max_images, "trials": trials, "seed": seed, "views": views,
+            "max_images": max_images, "trials": trials, "seed": seed, "views": views, "max_side": max_side,
             "subset_rng": "numpy.random.default_rng([seed, trial, K, crc32(object)])",
             "reference_uses": "all images" if ref else None,
         },
