@@ -153,6 +153,7 @@ def test_upscale_normals_keeps_unit_length_and_the_mask():
     (["--reference", "least-squares"], "--reference must differ"),
     (["--method", "least-squares", "--max-images", "2"], "at least 3"),
     (["--method", "sdm-unips", "--max-side", "8"], "--max-side must be at least 16"),
+    (["--method", "least-squares", "--max-side", "64"], "needs --method or --reference sdm-unips"),
 ])
 def test_bad_input_is_one_line_exit_2(dataset, capsys, argv, message):
     assert main(["eval", str(dataset), "--quiet", *argv]) == 2
