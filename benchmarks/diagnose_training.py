@@ -83,6 +83,22 @@ def overfit(data: str, init: str | None, steps: int, lr: float, target: str = "n
             print(f"step {step:3d}  loss {float(loss.detach()):.4f}  {score}", flush=True)
 
 
+def _valid_pixels(scene) -> np.ndarray:
+    """(H, W) bool: the pixels validation scores (inside the mask, with a unit ground-truth normal)."""
+    return scene["mask"].astype(bool) & (np.linalg.norm(scene["normal"].astype(np.float64), axis=2) > 0.5)
+
+
+def _network_input(scene):
+    """(mask (H, W) bool tensor, images (N, 3, H, W) normalised as at inference) of a loaded scene."""
+    import torch
+
+    from networks.preprocess import normalize_images
+
+    m = torch.from_numpy(scene["mask"].astype(bool))
+    images = torch.from_numpy(scene["images"].astype(np.float32)).permute(0, 3, 1, 2)
+    return m, normalize_images(images, m.float().unsqueeze(0))
+
+
 def _truth(data: str) -> dict[str, list[np.ndarray]]:
     """Per scene, the ground-truth base color (P, 3), roughness (P,) and metallic (P,) at its valid pixels (mask
     and a unit normal), as training validation selects them."""
@@ -91,7 +107,7 @@ def _truth(data: str) -> dict[str, list[np.ndarray]]:
     out: dict[str, list[np.ndarray]] = {"base_color": [], "roughness": [], "metallic": []}
     for path in list_scenes(data):
         with np.load(Path(path) / "data.npz") as z:
-            valid = z["mask"] & (np.linalg.norm(z["normal"].astype(np.float64), axis=2) > 0.5)
+            valid = _valid_pixels(z)
             for key, values in out.items():
                 values.append(z[key].astype(np.float64)[valid])
     return out
@@ -178,19 +194,13 @@ def self_calibrated(data: str, init: str) -> None:
 def _predictions(model, data: str, scenes: int | None):
     """Per scene of ``data`` (the first ``scenes``): (scene folder, loaded scene, mask (H, W) bool, predicted maps),
     the maps from one view of all stored images with the ground-truth mask, as validation predicts them."""
-    import torch
-
     from networks.data import list_scenes, load_scene
     from networks.inference import predict
-    from networks.preprocess import normalize_images
 
     for path in list_scenes(data)[:scenes]:
         scene = load_scene(path)
-        mask = scene["mask"].astype(bool)
-        m = torch.from_numpy(mask)
-        images = torch.from_numpy(scene["images"].astype(np.float32)).permute(0, 3, 1, 2)
-        out = predict(model, normalize_images(images, m.float().unsqueeze(0)), m, seed=0)
-        yield Path(path), scene, mask, out
+        m, images = _network_input(scene)
+        yield Path(path), scene, m.numpy(), predict(model, images, m, seed=0)
 
 
 def brdf_outputs(data: str, init: str, scenes: int) -> None:
@@ -260,7 +270,7 @@ def brdf_by_material(data: str, init: str, assets: str, scenes: int | None) -> N
     groups, truth, pred = [], {k: [] for k in keys}, {k: [] for k in keys}
     cache: dict = {}
     for path, scene, mask, out in _predictions(model, data, scenes):
-        valid = mask & (np.linalg.norm(scene["normal"].astype(np.float64), axis=2) > 0.5)
+        valid = _valid_pixels(scene)
         g = material_groups(json.loads((path / "spec.json").read_text()), mask.shape[0], assets, cache)
         if (g[valid] < 0).any():
             raise SystemExit(f"{path}: the re-rendered shapes miss {(g[valid] < 0).sum()} valid pixels")
@@ -312,11 +322,12 @@ def normal_by_material(data: str, init: str, assets: str, scenes: int | None) ->
     cache: dict = {}
     for path, scene, mask, out in _predictions(model, data, scenes):
         truth = scene["normal"].astype(np.float64)
-        valid = mask & (np.linalg.norm(truth, axis=2) > 0.5)
-        g = material_groups(json.loads((path / "spec.json").read_text()), mask.shape[0], assets, cache)
+        valid = _valid_pixels(scene)
+        spec = json.loads((path / "spec.json").read_text())
+        g = material_groups(spec, mask.shape[0], assets, cache)
         cos = np.clip((out["normal"].astype(np.float64) * truth).sum(-1), -1, 1)
         err = np.degrees(np.arccos(cos))
-        group = json.loads((path / "spec.json").read_text()).get("lighting_group", "?")
+        group = spec.get("lighting_group", "?")
         for code in range(6):
             sel = valid & (g == code)
             rows.setdefault((group, code), []).append(err[sel])
@@ -342,15 +353,11 @@ def _regressor_features(model, path: Path) -> tuple[np.ndarray, np.ndarray, dict
     import torch
 
     from networks.data import load_scene
-    from networks.preprocess import normalize_images
 
     scene = load_scene(path)
-    mask = scene["mask"].astype(bool)
-    valid = (mask & (np.linalg.norm(scene["normal"].astype(np.float64), axis=2) > 0.5)).reshape(-1)
-    m = torch.from_numpy(mask)
-    x = normalize_images(torch.from_numpy(scene["images"].astype(np.float32)).permute(0, 3, 1, 2),
-                         m.float().unsqueeze(0))[None]
-    mk = m[None, None].float()
+    valid = _valid_pixels(scene).reshape(-1)
+    m, images = _network_input(scene)
+    x, mk = images[None], m[None, None].float()
     ids = torch.nonzero(m.reshape(-1)).squeeze(1)
     ids = ids[torch.randperm(ids.numel(), generator=torch.Generator().manual_seed(0))]
     got: list = []
