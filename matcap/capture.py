@@ -376,7 +376,7 @@ def _progress_callback(target: str, progress):
     return cb
 
 
-def _check_max_side(max_side: int) -> None:
+def check_max_side(max_side: int) -> None:
     if max_side < 16:
         raise MatcapError(f"--max-side must be at least 16, got {max_side}")
 
@@ -385,7 +385,7 @@ def downscale_arrays(images: list[np.ndarray], mask: np.ndarray | None, max_side
     """``(images, mask)`` shrunk so that the longer side is at most ``max_side`` pixels, keeping the aspect ratio:
     images (H, W, 3) area-averaged in linear light, mask (H, W) bool by area coverage > 0.5. Unchanged (the same
     objects) when they already fit."""
-    _check_max_side(max_side)
+    check_max_side(max_side)
     h, w = images[0].shape[:2]
     if max(h, w) <= max_side:
         return images, mask
@@ -448,7 +448,7 @@ def capture(
 
     constants = {name: check_constant(name, value) for name, value in (constants or {}).items()}
     if max_side is not None:
-        _check_max_side(max_side)  # fail before the expensive part
+        check_max_side(max_side)  # fail before the expensive part
     check_output_dir(out, overwrite)  # fail before the expensive part
     cap = load_capture(folder, mask=mask, linear=linear)
     original_wh = [cap.images[0].shape[1], cap.images[0].shape[0]]

@@ -118,6 +118,7 @@ def test_max_side_feeds_the_network_small_images_and_scores_at_full_size(dataset
     fake = types.ModuleType("matcap.capture")
     fake.estimate = estimate
     fake.downscale_arrays, fake.upscale_normals = real.downscale_arrays, real.upscale_normals
+    fake.check_max_side = real.check_max_side
     monkeypatch.setitem(sys.modules, "matcap.capture", fake)
     monkeypatch.setattr(matcap, "capture", fake, raising=False)
     js = tmp_path / "r.json"

@@ -245,8 +245,10 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
         if missing:
             raise MatcapError(f"unknown object(s) {', '.join(missing)}; found: {', '.join(sorted(names))}")
         sources = [s for s in sources if s.name in set(objects)]
-    if max_side is not None and max_side < 16:
-        raise MatcapError(f"--max-side must be at least 16, got {max_side}")
+    if max_side is not None:
+        from matcap.capture import check_max_side  # no torch: matcap.capture loads the networks lazily
+
+        check_max_side(max_side)
     if max_side is not None and "sdm-unips" not in (m.name, ref.name if ref else None):
         raise MatcapError("--max-side shrinks the network's input: it needs --method or --reference sdm-unips")
     ctx = MethodContext(weights=weights, device=device, views=views, max_side=max_side, state={})
