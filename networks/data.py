@@ -168,14 +168,23 @@ class SceneCache:
         return self._cache[i]
 
 
-def draw_batch(cache: SceneCache, spec: SampleSpec, batch: int, seed: int, step: int, rank: int = 0):
-    """A batch of ``batch`` samples with a common K (so they stack): dict of (B, ...) numpy arrays."""
-    rng = np.random.default_rng([seed, step, rank])
+MICRO_OFFSET = 1 << 20  # keeps a micro-batch's seed apart from every sample slot's (slots stay below it)
+
+
+def draw_batch(cache: SceneCache, spec: SampleSpec, batch: int, seed: int, step: int, rank: int = 0, micro: int = 0):
+    """A batch of ``batch`` samples with a common K (so they stack): dict of (B, ...) numpy arrays.
+
+    A pure function of ``(seed, step, rank, micro)``; ``micro`` numbers the micro-batches of one optimiser step
+    when gradients are accumulated (micro-batch 0 is the batch drawn without accumulation)."""
+    if batch >= MICRO_OFFSET:
+        raise ValueError(f"batch {batch} is too large (at most {MICRO_OFFSET - 1})")
+    key = [seed, step, rank] if micro == 0 else [seed, step, rank, MICRO_OFFSET + micro]
+    rng = np.random.default_rng(key)
     k = int(rng.integers(spec.min_images, spec.max_images + 1))
     fixed = SampleSpec(**{**spec.__dict__, "min_images": k, "max_images": k})
     samples = []
     for slot in range(batch):
-        srng = np.random.default_rng([seed, step, rank, slot])
+        srng = np.random.default_rng([seed, step, rank, slot] + ([micro] if micro else []))
         scene = cache.get(int(srng.integers(len(cache))))
         samples.append(draw_sample(scene, fixed, srng))
     return {key: np.stack([s[key] for s in samples]) for key in samples[0]}

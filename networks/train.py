@@ -15,6 +15,7 @@ Files in ``--out``: ``checkpoint.pt`` (tensors and numbers only, loaded with ``w
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
@@ -23,7 +24,6 @@ import signal
 import sys
 import threading
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -186,23 +186,29 @@ def _worker_init(scenes: list[Path]) -> None:
     _worker_cache = SceneCache(scenes)
 
 
-def _worker_batch(sample, batch: int, seed: int, rank: int, step: int) -> dict[str, np.ndarray]:
+def _step_batches(cache: SceneCache, sample, batch: int, accumulate: int, seed: int, rank: int,
+                  step: int) -> list[dict[str, np.ndarray]]:
+    """The ``accumulate`` micro-batches of one optimiser step."""
+    return [draw_batch(cache, sample, batch, seed, step, rank, micro) for micro in range(accumulate)]
+
+
+def _worker_batch(sample, batch: int, accumulate: int, seed: int, rank: int, step: int) -> list[dict[str, np.ndarray]]:
     assert _worker_cache is not None
-    return draw_batch(_worker_cache, sample, batch, seed, step, rank)
+    return _step_batches(_worker_cache, sample, batch, accumulate, seed, rank, step)
 
 
 def _batches(cache: SceneCache, scenes: list[Path], tc: TrainConfig, start: int, rank: int):
-    """Yield ``(step, batch)`` for steps ``start .. tc.steps - 1`` in order: drawn here, or by ``tc.workers`` spawned
-    processes at most ``2 * workers`` steps ahead (the same batches: each is a pure function of its step)."""
+    """Yield ``(step, micro-batches)`` for steps ``start .. tc.steps - 1`` in order: drawn here, or by ``tc.workers``
+    spawned processes at most ``2 * workers`` steps ahead (the same batches: each is a pure function of its step)."""
     if tc.workers <= 0:
         for step in range(start, tc.steps):
-            yield step, draw_batch(cache, tc.sample, tc.batch, tc.seed, step, rank)
+            yield step, _step_batches(cache, tc.sample, tc.batch, tc.accumulate, tc.seed, rank, step)
         return
     import collections
     import functools
     import multiprocessing
 
-    work = functools.partial(_worker_batch, tc.sample, tc.batch, tc.seed, rank)
+    work = functools.partial(_worker_batch, tc.sample, tc.batch, tc.accumulate, tc.seed, rank)
     with multiprocessing.get_context("spawn").Pool(tc.workers, _worker_init, (scenes,)) as pool:
         pending: collections.deque = collections.deque()  # (step, async result), oldest first
         upcoming = iter(range(start, tc.steps))
@@ -218,7 +224,7 @@ def _batches(cache: SceneCache, scenes: list[Path], tc: TrainConfig, start: int,
             yield step, result.get()
 
 
-@contextmanager
+@contextlib.contextmanager
 def _stop_requests(enabled: bool):
     """While active, SIGINT / SIGTERM only set ``flag["stop"]``: the loop then finishes its step, writes the
     checkpoint and returns, so Ctrl-C or ``kill`` loses nothing and ``--resume`` continues exactly there. Off for
@@ -245,6 +251,8 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
     from networks.checkpoint import load_model, save_weights
     from networks.model import SDMUniPS
 
+    if tc.accumulate < 1:
+        raise ValueError(f"--accumulate must be at least 1, got {tc.accumulate}")
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     ddp = world > 1
@@ -360,22 +368,28 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
     batches = _batches(cache, scenes, tc, start, rank)
     clamp = not tc.brdf_loss_before_relu
     with _stop_requests(enabled=not ddp) as stop:
-        for step, drawn in batches:
+        for step, micro_batches in batches:
             torch.manual_seed(tc.seed * 1_000_003 + step * 7919 + rank)  # dropout noise of this step
-            batch = to_torch(drawn, device)
-            if autocast is not None:
-                with autocast:
-                    pred = net(batch["images"], batch["input_mask"], batch["pixel_index"], clamp=clamp)
-            else:
-                pred = net(batch["images"], batch["input_mask"], batch["pixel_index"], clamp=clamp)
-            loss, terms = compute_loss(pred, batch, tc.target, tc.brdf_weights)
             opt.zero_grad(set_to_none=True)
-            loss.backward()
+            loss_sum, terms = 0.0, {}
+            for micro, drawn in enumerate(micro_batches):
+                last_micro = micro == len(micro_batches) - 1
+                # DDP averages gradients across processes once per step, on the last micro-batch's backward
+                sync = net.no_sync() if ddp and not last_micro else contextlib.nullcontext()
+                with sync:
+                    batch = to_torch(drawn, device)
+                    with autocast if autocast is not None else contextlib.nullcontext():
+                        pred = net(batch["images"], batch["input_mask"], batch["pixel_index"], clamp=clamp)
+                    loss, micro_terms = compute_loss(pred, batch, tc.target, tc.brdf_weights)
+                    (loss / len(micro_batches)).backward()
+                loss_sum += float(loss.detach())
+                for key, value in micro_terms.items():
+                    terms[key] = terms.get(key, 0.0) + value / len(micro_batches)
             if tc.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
             opt.step()
             sched.step()
-            running.append(float(loss.detach()))
+            running.append(loss_sum / len(micro_batches))
             now = time.perf_counter()
             wall = wall_before + now - t_start
             if bar is not None:

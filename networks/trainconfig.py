@@ -27,7 +27,10 @@ class TrainConfig:
     steps: int = 20000
     """Total optimiser steps."""
     batch: int = 4
-    """Samples per step per process."""
+    """Samples per micro-batch per process."""
+    accumulate: int = 1
+    """Micro-batches per optimiser step: their gradients are averaged before the step, so the effective batch is
+    batch x accumulate x processes at the memory of one micro-batch."""
     lr: float = 1e-4
     """Peak learning rate (AdamW)."""
     weight_decay: float = 0.05
@@ -123,7 +126,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt (model, optimiser, "
                    "schedule and data order: bit-for-bit where it stopped)")
     p.add_argument("--init", help="start from these weights (.safetensors) instead of random init")
-    for name in ("canonical_resolution", "steps", "batch", "warmup_steps", "decay_every", "log_every", "seed",
+    for name in ("canonical_resolution", "steps", "batch", "accumulate", "warmup_steps", "decay_every", "log_every", "seed",
                  "threads", "workers", "val_scenes", "resolution", "min_images", "max_images", "pixel_samples"):
         flag(name, type=int)
     for name in ("dropout", "lr", "weight_decay", "decay_factor", "grad_clip", "val_every_s", "checkpoint_every_s",
