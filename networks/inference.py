@@ -13,6 +13,17 @@ from networks.model import SDMUniPS
 Progress = Callable[[int, int], None]
 
 
+def check_device(name: str) -> torch.device:
+    """``torch.device(name)``, or a one-line ``ValueError`` for a name torch rejects or CUDA it does not have."""
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError, TypeError):
+        raise ValueError(f"--device {name!r}: not a torch device (e.g. cpu, cuda, cuda:1)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {name}: CUDA is not available in this torch build")
+    return device
+
+
 def _check(model: SDMUniPS, images: torch.Tensor, mask: torch.Tensor, multiple: int) -> None:
     if not isinstance(images, torch.Tensor) or images.dim() != 4 or images.shape[1] != 3:
         shape = tuple(images.shape) if isinstance(images, torch.Tensor) else type(images).__name__

@@ -32,8 +32,9 @@ import torch.nn.functional as F
 
 from networks.config import SDMUniPSConfig, get_config
 from networks.data import SceneCache, draw_batch, list_scenes, load_scene
+from networks.inference import check_device
 from networks.preprocess import normalize_images
-from networks.trainconfig import TrainConfig, add_arguments, config_from_args
+from networks.trainconfig import TrainConfig, add_arguments, check_config, config_from_args
 
 # ------------------------------------------------------------------------------------------ helpers
 
@@ -245,14 +246,31 @@ def _stop_requests(enabled: bool):
             signal.signal(sig, old)
 
 
-def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progress: bool = True) -> dict:
+#: Files of a run folder that a fresh run would replace.
+RUN_FILES = ("checkpoint.pt", "best.safetensors", "last.safetensors")
+
+
+def check_run_folder(out: Path, resume: bool, overwrite: bool) -> None:
+    """A fresh run never replaces an earlier one's checkpoint or weights unless asked to."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a folder")
+    held = [name for name in RUN_FILES if (out / name).exists()]
+    if held and not resume and not overwrite:
+        raise ValueError(f"--out {out} holds an earlier run ({', '.join(held)}); pass --resume to continue it, "
+                         "--overwrite to start over, or choose another folder")
+
+
+def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progress: bool = True,
+          overwrite: bool = False) -> dict:
     """Run (or continue) training. Returns the final record (step, best, last validation; ``"stopped": True``
-    when SIGINT / SIGTERM ended it early, after saving the checkpoint)."""
+    when SIGINT / SIGTERM ended it early, after saving the checkpoint). A fresh run (not ``resume``) refuses an
+    ``out`` folder that holds an earlier run unless ``overwrite``."""
     from networks.checkpoint import load_model, save_weights
     from networks.model import SDMUniPS
 
-    if tc.accumulate < 1:
-        raise ValueError(f"--accumulate must be at least 1, got {tc.accumulate}")
+    check_config(tc)
+    check_run_folder(Path(tc.out), resume, overwrite)
+    check_device(tc.device)
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     ddp = world > 1
@@ -443,7 +461,8 @@ def main(argv: list[str] | None = None) -> int:
     add_arguments(p)
     args = p.parse_args(argv)
     try:
-        result = train(config_from_args(args), resume=args.resume, init=args.init, progress=not args.quiet)
+        result = train(config_from_args(args), resume=args.resume, init=args.init, progress=not args.quiet,
+                       overwrite=args.overwrite)
     except ValueError as exc:
         print(f"networks.train: error: {exc}", file=sys.stderr)
         return 2

@@ -6,6 +6,7 @@ import ast
 import dataclasses
 import functools
 import inspect
+import math
 import textwrap
 from dataclasses import dataclass, field
 
@@ -125,6 +126,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     flag("out")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt (model, optimiser, "
                    "schedule and data order: bit-for-bit where it stopped)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="start a fresh run in an --out folder that holds an earlier run (its checkpoint and weights "
+                        "are replaced); without it such a folder is refused unless --resume")
     p.add_argument("--init", help="start from these weights (.safetensors) instead of random init")
     for name in ("canonical_resolution", "steps", "batch", "accumulate", "warmup_steps", "decay_every", "log_every", "seed",
                  "threads", "workers", "val_scenes", "resolution", "min_images", "max_images", "pixel_samples"):
@@ -142,6 +146,40 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     flag("bf16", action="store_true")
     p.add_argument("--save-all-ranks", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def check_config(tc: TrainConfig) -> None:
+    """Raise ``ValueError`` (one line that names the flag) for a setting the trainer would crash on, silently
+    ignore or misread: counts below their minimum, probabilities outside [0, 1], negative or non-finite rates."""
+
+    def flag(name: str) -> str:
+        return "--" + name.replace("_", "-")
+
+    s = tc.sample
+    at_least = {"steps": (tc.steps, 1), "batch": (tc.batch, 1), "accumulate": (tc.accumulate, 1),
+                "log_every": (tc.log_every, 1), "decay_every": (tc.decay_every, 1),
+                "warmup_steps": (tc.warmup_steps, 0), "threads": (tc.threads, 0), "workers": (tc.workers, 0),
+                "val_scenes": (tc.val_scenes, 1), "seed": (tc.seed, 0), "resolution": (s.resolution, 1),
+                "min_images": (s.min_images, 1), "pixel_samples": (s.pixel_samples, 1)}
+    for name, (value, low) in at_least.items():
+        if value < low:
+            raise ValueError(f"{flag(name)} must be at least {low}, got {value}")
+    if s.max_images < s.min_images:
+        raise ValueError(f"--max-images ({s.max_images}) must not be below --min-images ({s.min_images})")
+    for name in ("fresh_combination_prob", "drop_mask_prob"):
+        value = getattr(s, name)
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f"{flag(name)} must be a probability in [0, 1], got {value}")
+    if not 0.0 < s.min_crop <= 1.0:
+        raise ValueError(f"--min-crop must be a fraction in (0, 1], got {s.min_crop}")
+    for name in ("lr", "weight_decay", "grad_clip", "decay_factor"):
+        value = getattr(tc, name)
+        if not math.isfinite(value) or value < 0:
+            raise ValueError(f"{flag(name)} must be a finite number >= 0, got {value}")
+    for name in ("val_every_s", "checkpoint_every_s"):
+        value = getattr(tc, name)
+        if not value > 0:
+            raise ValueError(f"{flag(name)} must be positive, got {value}")
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:

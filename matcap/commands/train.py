@@ -3,13 +3,10 @@ from __future__ import annotations
 
 
 def register(sub) -> None:
-    import argparse
-
     p = sub.add_parser(
         "train",
         help="train the normal or BRDF network on synthetic data (resumable; torchrun for data-parallel)",
         description="Train an SDM-UniPS network. Data-parallel: torchrun --nproc_per_node=2 -m networks.train ...",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     from networks.trainconfig import add_arguments
 
@@ -20,7 +17,8 @@ def register(sub) -> None:
 def run(args) -> int:
     from networks.train import config_from_args, train
 
-    result = train(config_from_args(args), resume=args.resume, init=args.init, progress=not args.quiet)
+    result = train(config_from_args(args), resume=args.resume, init=args.init, progress=not args.quiet,
+                   overwrite=args.overwrite)
     if result.get("stopped"):
         print(f"stopped at step {result['step']} (checkpoint saved): continue with the same command and --resume")
         return 130
