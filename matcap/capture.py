@@ -171,14 +171,36 @@ def load_networks(weights: Sequence[str | os.PathLike] | None, device: str = "cp
     return {k: out[k] for k in sorted(out, key=lambda t: t != "normal")}
 
 
+def import_published_quietly(path: Path):
+    """``networks.checkpoint.import_published`` without torch's pickle-protocol UserWarning, which a file that is
+    not a checkpoint (any pickle) triggers before the one-line error: the error alone explains the problem."""
+    import warnings
+
+    from networks.checkpoint import import_published
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Detected pickle protocol", category=UserWarning)
+        return import_published(path)
+
+
+def check_device(device: str) -> None:
+    """One-line error for a ``--device`` torch cannot use: not a device name, or CUDA absent."""
+    from networks.inference import check_device as check
+
+    try:
+        check(device)
+    except ValueError as exc:
+        raise MatcapError(str(exc)) from None
+
+
 def load_network(path: Path, device: str = "cpu") -> LoadedModel:
     """Load our safetensors weights or a published ``.pytmodel`` (never unpickled: ``weights_only=True``)."""
 
-    from networks.checkpoint import import_published, load_model
+    from networks.checkpoint import load_model
     from networks.model import SDMUniPS
 
     if path.suffix == ".pytmodel":
-        config, state = import_published(path)
+        config, state = import_published_quietly(path)
         model = SDMUniPS(config)
         model.load_state_dict(state, strict=True)
         model = model.to(device)
@@ -444,12 +466,13 @@ def capture(
     (recorded in ``capture.json`` as ``constant_maps``). ``max_side`` shrinks the photos first so that their
     longer side is at most that many pixels (a quick pass over large photos; maps come out at that size).
     """
-    from matcap.results import check_output_dir, write_result
+    from matcap.results import check_not_replacing_inputs, check_output_dir, write_result
 
     constants = {name: check_constant(name, value) for name, value in (constants or {}).items()}
     if max_side is not None:
         check_max_side(max_side)  # fail before the expensive part
     check_output_dir(out, overwrite)  # fail before the expensive part
+    check_not_replacing_inputs(out, folder, mask)  # --overwrite replaces the out folder: never the photos in it
     cap = load_capture(folder, mask=mask, linear=linear)
     original_wh = [cap.images[0].shape[1], cap.images[0].shape[0]]
     if max_side is not None:

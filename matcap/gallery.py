@@ -264,7 +264,7 @@ def gallery(
     """
     from tqdm import tqdm
 
-    from matcap.results import output_dir
+    from matcap.results import check_not_replacing_inputs, output_dir
     from renderers.relight import DEFAULT_SPP, mask_coverage, render
 
     t0 = time.perf_counter()
@@ -292,6 +292,7 @@ def gallery(
     names = [n for n, _, _ in jobs]
     if len(set(names)) != len(names):
         raise MatcapError("two environment maps have the same file name; rename one")
+    check_not_replacing_inputs(out, source, *files)  # --overwrite replaces `out`: never the maps it renders
     coverage = mask_coverage(maps.mask, width, height)
     src_text = str(source) if not hasattr(source, "normal") else str(maps.meta.get("source", "MaterialMaps"))
     timings: dict[str, float] = {}

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,11 +57,82 @@ def _to_rgb3(arr: np.ndarray, path: str) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
+@contextlib.contextmanager
+def _native_output_captured():
+    """Collect what a native library prints while reading: the OpenEXR core writes its own line to file descriptor
+    2 and the Python binding prints a "Warning: ..." line to ``sys.stdout`` for a corrupt file, before the exception.
+    Yields a list that receives the captured text (fd-level capture is skipped where fds cannot be duplicated)."""
+    import ctypes
+    import io
+    import sys
+
+    captured: list[str] = []
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (AttributeError, OSError, ValueError):
+            pass
+    py_streams = sys.stdout, sys.stderr
+    py_sink = io.StringIO()
+    saved: list[int] | None = []
+    try:
+        for fd in (1, 2):
+            saved.append(os.dup(fd))
+    except OSError:  # no such descriptor (an embedding without stdout): capture at the Python level only
+        for fd in saved:
+            os.close(fd)
+        saved = None
+    sink = tempfile.TemporaryFile() if saved is not None else None
+    if sink is not None:
+        os.dup2(sink.fileno(), 1)
+        os.dup2(sink.fileno(), 2)
+    sys.stdout = sys.stderr = py_sink
+    try:
+        yield captured
+    finally:
+        sys.stdout, sys.stderr = py_streams
+        if sink is not None:
+            try:
+                ctypes.CDLL(None).fflush(None)  # C stdio may still hold the text
+            except (OSError, TypeError, AttributeError):  # no C library handle (Windows): nothing to flush
+                pass
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            captured.append(sink.read().decode("utf-8", "replace"))
+            sink.close()
+        captured.append(py_sink.getvalue())
+
+
 def read_exr(path: str | os.PathLike) -> np.ndarray:
     """Read an OpenEXR file as float32: (H, W, 3) for RGB(A) files, (H, W) for single-channel files."""
-    import OpenEXR
+    import sys
 
     path = str(path)
+    with _native_output_captured() as native:
+        try:
+            arr, error = _read_exr(path), None
+        except MatcapError as exc:
+            arr, error = None, exc
+    if error is None:
+        if "".join(native).strip():  # never hide what a successful read printed
+            sys.stderr.write("".join(native))
+        return arr
+    # a broken file: the OpenEXR core's own line says more than the Python exception ("file has 0 parts")
+    lines = [ln.strip() for ln in "".join(native).splitlines() if ln.strip()]
+    detail = next((ln for ln in lines if "EXR_ERR" in ln), None)
+    if detail is not None:
+        detail = detail.split(": ", 1)[1] if detail.startswith(path + ": ") else detail
+        detail = re.sub(r"^\((EXR_ERR_\w+)\)\s*", r"\1: ", detail)
+        raise MatcapError(f"{path}: cannot read EXR, the file is corrupt or truncated ({detail})") from None
+    raise error
+
+
+def _read_exr(path: str) -> np.ndarray:
+    import OpenEXR
+
     try:
         with OpenEXR.File(path) as f:
             channels = f.channels()

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +78,9 @@ def install(weights: str | os.PathLike, name: str, *, fp16: bool = True, overwri
     from matcap.imageio import atomic_path, write_text_atomic
     from networks.checkpoint import CARD_KEY, CONFIG_KEY, read_metadata
 
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", name or ""):
+        raise MatcapError(f"--name {name!r}: use letters, digits, '.', '_' and '-' only (a file name in {folder}, "
+                          "not a path)")
     src = Path(weights)
     config, card = read_metadata(src)
     if pixel_samples is not None:

@@ -39,7 +39,26 @@ def check_output_dir(path: str | os.PathLike, overwrite: bool) -> Path:
         raise MatcapError(f"{path} exists and is not a folder")
     if path.is_dir() and any(path.iterdir()) and not overwrite:
         raise MatcapError(f"{path} already holds files; pass --overwrite to replace them")
+    # the folder is built next to `path` and renamed into place: its parent (or the nearest existing ancestor,
+    # which the parents are created in) must be writable; fail now, not after the work
+    parent = path.absolute().parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if parent.exists() and not (parent.is_dir() and os.access(parent, os.W_OK | os.X_OK)):
+        raise MatcapError(f"{path}: cannot write in {parent} (read-only or no permission)")
     return path
+
+
+def check_not_replacing_inputs(out: str | os.PathLike, *inputs) -> None:
+    """Refuse an output folder that is, or contains, one of ``inputs`` (paths or None): :func:`output_dir` replaces
+    the whole folder, so with ``--overwrite`` it would delete the photos or maps the command reads."""
+    out_r = Path(out).resolve()
+    for item in inputs:
+        if item is None or not isinstance(item, (str, os.PathLike)):
+            continue
+        src = Path(item).resolve()
+        if src == out_r or out_r in src.parents:
+            raise MatcapError(f"--out {out} would replace the input {item}; choose another output folder")
 
 
 @contextlib.contextmanager
@@ -152,6 +171,8 @@ def read_result(folder: str | os.PathLike) -> MaterialMaps:
         raise MatcapError(f"{folder}: normal map has shape {normal.shape}, expected (H, W, 3)")
     if mask.shape != normal.shape[:2]:
         raise MatcapError(f"{folder}: mask.png is {mask.shape[::-1]} but normals are {normal.shape[1::-1]} (W, H)")
+    if not mask.any():
+        raise MatcapError(f"{folder}: the mask is empty (no surface pixel to use)")
 
     def grey(name: str) -> np.ndarray | None:
         p = folder / name
@@ -167,12 +188,16 @@ def read_result(folder: str | os.PathLike) -> MaterialMaps:
         top = 65535.0 if stored.dtype == np.uint16 else 255.0
         base_color = imageio.srgb_to_linear(stored.astype(np.float32) / top)
     height = imageio.read_exr(folder / "height.exr") if (folder / "height.exr").exists() else None
+    if height is not None:
+        imageio.check_finite(height, str(folder / "height.exr"))
     meta: dict[str, Any] = {}
     if (folder / "capture.json").exists():
         try:
             meta = json.loads((folder / "capture.json").read_text())
         except json.JSONDecodeError as exc:
             raise MatcapError(f"{folder / 'capture.json'}: not valid JSON ({exc})") from None
+        if not isinstance(meta, dict):
+            raise MatcapError(f"{folder / 'capture.json'}: expected a JSON object, got a {type(meta).__name__}")
     try:
         return MaterialMaps(
             normal=normal, mask=mask, base_color=base_color, roughness=grey("roughness.png"),

@@ -233,7 +233,12 @@ def _check_params(out: Path, params: dict) -> None:
 
     path = out / "synth_params.json"
     if path.exists():
-        old = json.loads(path.read_text())
+        try:
+            old = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise MatcapError(f"{path}: not valid JSON ({exc}); is {out} a `matcap synth` dataset?") from None
+        if not isinstance(old, dict):
+            raise MatcapError(f"{path}: expected a JSON object, got a {type(old).__name__}")
         diff = [k for k in params if k != "num_scenes" and old.get(k) != params[k]]
         if diff:
             raise MatcapError(f"{out} holds a dataset made with other settings ({', '.join(diff)}); use another --out")
@@ -353,6 +358,12 @@ def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise MatcapError(f"--out {out}: exists and is not a folder")
+    if out.is_dir() and not (out / "synth_params.json").exists():  # resume a dataset, but never mix into other data
+        foreign = sorted(p.name for p in out.iterdir() if not p.name.startswith(".") and not p.name.startswith("scene_")
+                         and p.name not in ("synth_params.json", "manifest.json", "failures.log"))
+        if foreign:
+            raise MatcapError(f"--out {out} holds files that are not part of a `matcap synth` dataset "
+                              f"({', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}); use another folder")
     out.mkdir(parents=True, exist_ok=True)
     assets_used = None if assets is None else {"meshes": len(catalog.meshes), "envmaps": len(catalog.envmaps),
                                                "textures": len(catalog.textures)}

@@ -50,20 +50,41 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _check_follow_ups(args) -> None:
+    """Fail on a bad --relight / --spp / --export / --preset before the networks run and the result is written."""
+    from matcap.errors import MatcapError
+
+    if args.spp is not None and not 1 <= args.spp <= 65536:
+        raise MatcapError(f"--spp must be between 1 and 65536, got {args.spp}")
+    if args.relight:
+        from matcap.relight import env_paths, load_envmap
+
+        for env in env_paths(args.relight):
+            load_envmap(env)
+    if args.export:
+        from matcap.export import PRESETS
+
+        if args.preset not in PRESETS:
+            raise MatcapError(f"unknown preset {args.preset!r}; choose one of {', '.join(PRESETS)}")
+        if Path(args.export).exists() and not Path(args.export).is_dir():
+            raise MatcapError(f"--export {args.export} exists and is not a folder")
+
+
 def run(args) -> int:
-    from matcap.capture import capture, parse_constants
+    from matcap.capture import capture, check_device, parse_constants
     from matcap.errors import MatcapError
 
     photos = Path(args.photos)
     out = Path(args.out) if args.out else photos.resolve().parent / f"{photos.resolve().name}-matcap"
     if args.max_images is not None and args.max_images < 2:
         raise MatcapError(f"--max-images must be at least 2, got {args.max_images}")
+    if args.pixel_samples is not None and args.pixel_samples < 1:
+        raise MatcapError(f"--pixel-samples must be at least 1, got {args.pixel_samples}")
+    if args.seed < 0:
+        raise MatcapError(f"--seed must be 0 or more, got {args.seed}")
     constants = parse_constants(args.constant)
-    if args.device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            raise MatcapError(f"--device {args.device}: CUDA is not available in this torch build")
+    check_device(args.device)
+    _check_follow_ups(args)
     maps, out = capture(
         photos, out, mask=args.mask, linear=args.linear, overwrite=args.overwrite,
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
@@ -76,7 +97,7 @@ def run(args) -> int:
     if args.relight or args.point:
         from matcap.relight import relight
 
-        kwargs = {"spp": args.spp} if args.spp else {}
+        kwargs = {"spp": args.spp} if args.spp is not None else {}
         for env in args.relight or []:
             relight(maps, env=env, out=out, **kwargs)
         for pos in args.point or []:

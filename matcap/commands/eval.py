@@ -17,6 +17,16 @@ def _positive(text: str) -> int:
     return v
 
 
+def _non_negative(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {v}")
+    return v
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "eval",
@@ -35,7 +45,7 @@ def register(sub) -> None:
     p.add_argument("--max-images", type=_positive, metavar="K",
                    help="K images drawn at random per trial (default: all images, one trial)")
     p.add_argument("--trials", type=_positive, default=10, help="trials for --max-images (default 10)")
-    p.add_argument("--seed", type=int, default=0, help="base seed of the image subsets (default 0)")
+    p.add_argument("--seed", type=_non_negative, default=0, help="base seed of the image subsets (default 0)")
     p.add_argument("--split", default="test", help="synthetic split to evaluate (default test)")
     p.add_argument("--weights", action="append", metavar="FILE_OR_DIR",
                    help="network weights for sdm-unips (repeatable; default: the bundled model)")
@@ -46,7 +56,9 @@ def register(sub) -> None:
                    help="sdm-unips: shrink the images so that their longer side is at most PX, as `matcap capture "
                         "--max-side` does, and scale the normals back to full size for scoring")
     p.add_argument("--out", metavar="DIR",
-                   help="write results.md, results.json and error_maps/<object>.png (0-90 deg) here")
+                   help="write results.md, results.json and error_maps/<object>.png (0-90 deg) here (a new or "
+                        "empty folder unless --overwrite)")
+    p.add_argument("--overwrite", action="store_true", help="write into an --out folder that already holds files")
     p.add_argument("--json", metavar="FILE", help="also write the JSON report to FILE (atomically)")
     p.add_argument("--markdown", metavar="FILE", help="also write the Markdown table to FILE (atomically)")
     p.add_argument("--quiet", action="store_true", help="no per-object progress lines on stderr")
@@ -83,14 +95,18 @@ def run(args) -> int:
     objects = [o.strip() for o in args.objects.split(",") if o.strip()] if args.objects else None
     if args.objects is not None and not objects:
         raise MatcapError("--objects is empty")
-    if args.device.startswith("cuda") and "sdm-unips" in (args.method, args.reference):
-        import torch
+    if "sdm-unips" in (args.method, args.reference):
+        from networks.inference import check_device
 
-        if not torch.cuda.is_available():
-            raise MatcapError(f"--device {args.device}: CUDA is not available in this torch build")
+        check_device(args.device)
     out = Path(args.out) if args.out else None
-    if out is not None and out.exists() and not out.is_dir():
-        raise MatcapError(f"{out} exists and is not a folder")
+    if out is not None:
+        from matcap.results import check_output_dir
+
+        check_output_dir(out, args.overwrite)  # never replace an earlier evaluation's tables without --overwrite
+    for flag, name in (("--json", args.json), ("--markdown", args.markdown)):
+        if name and Path(name).is_dir():
+            raise MatcapError(f"{flag} {name} is a folder; give a file name")
     report = runner.evaluate(
         args.dataset, args.method, args.reference, objects=objects, max_images=args.max_images,
         trials=args.trials, seed=args.seed, weights=args.weights, device=args.device,

@@ -45,14 +45,26 @@ def _load_case(path: Path):
         meta = json.loads(meta_path.read_text())
     except json.JSONDecodeError as exc:
         raise ValueError(f"{meta_path} is not valid JSON: {exc}") from None
-    with np.load(path) as z:
-        data = {k: z[k] for k in z.files}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as exc:  # noqa: BLE001 - numpy raises ValueError/OSError/BadZipFile/AttributeError (a .npy)
+        raise ValueError(f"{path}: not a readable .npz case file ({type(exc).__name__})") from None
     need = {"images", "mask", "normal"}
     if not need <= set(data):
         raise ValueError(f"{path} lacks arrays {sorted(need - set(data))}")
+    if not isinstance(meta, dict):
+        raise ValueError(f"{meta_path}: expected a JSON object, got a {type(meta).__name__}")
     for key in ("salt", "canonical_resolution", "decoder_resolution", "pixel_samples"):
         if key not in meta:
             raise ValueError(f"{meta_path} lacks '{key}'")
+    for key in ("canonical_resolution", "decoder_resolution", "pixel_samples"):
+        try:
+            ok = int(meta[key]) >= 1
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"{meta_path}: '{key}' must be a positive whole number, got {meta[key]!r}")
     images = data["images"]
     if images.ndim != 4 or images.shape[-1] != 3 or images.shape[1] != images.shape[2]:
         raise ValueError(f"case images must have shape (N, S, S, 3), got {images.shape}")
@@ -83,11 +95,15 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
+    from matcap.capture import check_device
     from networks.checkpoint import reference_weights
     from networks.config import get_config
     from networks.inference import predict
     from networks.model import build_model
 
+    if args.threads < 0:
+        raise ValueError(f"--threads must be 0 (torch's choice) or more, got {args.threads}")
+    check_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
     path = Path(args.case)
