@@ -165,3 +165,35 @@ def test_bad_input_is_one_line_exit_2(dataset, capsys, argv, message):
 def test_missing_folder_is_exit_2(tmp_path, capsys):
     assert main(["eval", str(tmp_path / "nothing")]) == 2
     assert "no such folder" in capsys.readouterr().err
+
+
+def test_linear_gives_the_network_8bit_uw_values_as_stored(tmp_path, monkeypatch):
+    """UW captures are linear 8-bit data: with --linear the network sees value / 255, without it the sRGB decode."""
+    from matcap import imageio
+
+    folder = tmp_path / "uw" / "uw_box"
+    folder.mkdir(parents=True)
+    for i in range(3):
+        imageio.write_png(folder / f"box.{i}.png", np.full((8, 8, 3), 128 / 255, np.float32), bits=8)
+    imageio.write_png(folder / "box.mask.png", np.ones((8, 8), np.float32), bits=8)
+    (folder / "lights.txt").write_text("3\n0 0 1\n0.5 0 0.866\n0 0.5 0.866\n")
+    seen = []
+
+    def estimate(images, mask, *, weights=None, max_images=None, seed=0, device="cpu", views=1, progress=False):
+        seen.append(float(images[0][0, 0, 0]))
+        return types.SimpleNamespace(normal=np.where(mask[:, :, None], [0.0, 0.0, 1.0], 0.0))
+
+    fake = types.ModuleType("matcap.capture")
+    fake.estimate = estimate
+    monkeypatch.setitem(sys.modules, "matcap.capture", fake)
+    monkeypatch.setattr(matcap, "capture", fake, raising=False)
+    js = tmp_path / "r.json"
+    for extra in ([], ["--linear"]):
+        assert main(["eval", str(tmp_path / "uw"), "--method", "sdm-unips", "--reference", "least-squares", "--json",
+                     str(js), "--quiet", *extra]) == 0
+    assert seen[0] == pytest.approx(float(imageio.srgb_to_linear(np.float32(128 / 255))), abs=1e-6)
+    assert seen[1] == pytest.approx(128 / 255, abs=1e-6)
+    report = json.loads(js.read_text())
+    assert "--linear" in report["command"] and report["protocol"]["network_8bit"] == "as stored (linear)"
+    # without a network in the comparison the flag means nothing: a one-line usage error
+    assert main(["eval", str(tmp_path / "uw"), "--method", "least-squares", "--linear", "--quiet"]) == 2

@@ -55,6 +55,9 @@ def register(sub) -> None:
     p.add_argument("--max-side", type=_positive, metavar="PX",
                    help="sdm-unips: shrink the images so that their longer side is at most PX, as `matcap capture "
                         "--max-side` does, and scale the normals back to full size for scoring")
+    p.add_argument("--linear", action="store_true",
+                   help="sdm-unips: give the network 8-bit images as stored (linear), as `matcap capture --linear` "
+                        "does, instead of sRGB-decoded like photos (the UW captures are linear data)")
     p.add_argument("--out", metavar="DIR",
                    help="write results.md, results.json and error_maps/<object>.png (0-90 deg) here (a new or "
                         "empty folder unless --overwrite)")
@@ -82,6 +85,8 @@ def command_line(args) -> str:
         parts += ["--views", str(args.views)]
     if args.max_side is not None:
         parts += ["--max-side", str(args.max_side)]
+    if args.linear:
+        parts += ["--linear"]
     return " ".join(shlex.quote(p) for p in parts)
 
 
@@ -110,7 +115,7 @@ def run(args) -> int:
     report = runner.evaluate(
         args.dataset, args.method, args.reference, objects=objects, max_images=args.max_images,
         trials=args.trials, seed=args.seed, weights=args.weights, device=args.device,
-        views=args.views, max_side=args.max_side, error_map_dir=(out / "error_maps") if out else None, split=args.split,
+        views=args.views, max_side=args.max_side, linear=args.linear, error_map_dir=(out / "error_maps") if out else None, split=args.split,
         command=command_line(args),
         log=None if args.quiet else runner.stderr_log,
     )

@@ -137,10 +137,12 @@ class PSObject:
     def calibrated(self) -> bool:
         return self.light_dirs is not None
 
-    def network_images(self, indices: list[int] | np.ndarray | None = None) -> list[np.ndarray]:
-        """Linear float32 images for a learned method (sRGB-decoded when ``srgb_8bit``)."""
+    def network_images(self, indices: list[int] | np.ndarray | None = None,
+                       decode_srgb: bool = True) -> list[np.ndarray]:
+        """Linear float32 images for a learned method (sRGB-decoded when ``srgb_8bit`` and ``decode_srgb``; with
+        ``decode_srgb=False`` the 8-bit values are taken as linear, as `matcap capture --linear` does)."""
         idx = range(len(self.images)) if indices is None else indices
-        if self.srgb_8bit:
+        if self.srgb_8bit and decode_srgb:
             return [imageio.srgb_to_linear(self.images[i]) for i in idx]
         return [self.images[i] for i in idx]
 

@@ -43,6 +43,7 @@ class MethodContext:
     device: str = "cpu"
     views: int = 1  # test-time augmentation of the network (capture.estimate(views=...))
     max_side: int | None = None  # network input shrunk to this longer side, normals scaled back (capture --max-side)
+    linear: bool = False  # 8-bit images go to the network as stored (capture --linear), not sRGB-decoded
     state: dict[str, Any] | None = None  # lazily loaded things (networks), kept across objects
 
 
@@ -78,7 +79,7 @@ def _run_sdm_unips(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext
             state["models"] = capture.load_networks(ctx.weights, ctx.device)
             state["load_s"] = time.perf_counter() - t0
         kwargs["models"] = state["models"]
-    images, mask = obj.network_images(idx), obj.mask
+    images, mask = obj.network_images(idx, decode_srgb=not ctx.linear), obj.mask
     if ctx.max_side is not None:
         images, mask = capture.downscale_arrays(images, mask, ctx.max_side)
     maps = capture.estimate(images, mask, weights=ctx.weights, max_images=None, seed=seed,
@@ -226,7 +227,7 @@ def summarize_groups(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 def evaluate(dataset: str | Path, method: str = "least-squares", reference: str | None = None, *,
              objects: list[str] | None = None, max_images: int | None = None, trials: int = 10, seed: int = 0,
              weights: list[str] | None = None, device: str = "cpu", views: int = 1, max_side: int | None = None,
-             error_map_dir: str | Path | None = None,
+             linear: bool = False, error_map_dir: str | Path | None = None,
              split: str | None = "test", command: str | None = None,
              log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Evaluate ``method`` on every object under ``dataset``; returns the report (see :func:`to_markdown`)."""
@@ -251,7 +252,9 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
         check_max_side(max_side)
     if max_side is not None and "sdm-unips" not in (m.name, ref.name if ref else None):
         raise MatcapError("--max-side shrinks the network's input: it needs --method or --reference sdm-unips")
-    ctx = MethodContext(weights=weights, device=device, views=views, max_side=max_side, state={})
+    if linear and "sdm-unips" not in (m.name, ref.name if ref else None):
+        raise MatcapError("--linear changes what the network sees: it needs --method or --reference sdm-unips")
+    ctx = MethodContext(weights=weights, device=device, views=views, max_side=max_side, linear=linear, state={})
     rows = []
     t_start = time.perf_counter()
     for i, src in enumerate(sources):
@@ -273,6 +276,7 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
         "against": ref.name if ref else "ground truth",
         "protocol": {
             "max_images": max_images, "trials": trials, "seed": seed, "views": views, "max_side": max_side,
+            "network_8bit": "as stored (linear)" if linear else "sRGB-decoded",
             "subset_rng": "numpy.random.default_rng([seed, trial, K, crc32(object)])",
             "reference_uses": "all images" if ref else None,
         },
