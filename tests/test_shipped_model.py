@@ -11,29 +11,17 @@ import numpy as np
 import pytest
 
 from matcap.capture import estimate, load_capture
+from matcap.evaluation.metrics import analytic_sphere, angular_error_map
 from tests.conftest import REPO, shared_path
 
 NORMAL_WEIGHTS = REPO / "networks" / "weights" / "normal_small.safetensors"
-
-
-def analytic_sphere(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(H, W, 3) camera-space normals of the sphere whose silhouette is ``mask``, and the pixels to score (inside
-    the disc, away from the rim where one pixel spans many degrees)."""
-    ys, xs = np.nonzero(mask)
-    cx, cy = (xs.min() + xs.max()) / 2, (ys.min() + ys.max()) / 2
-    radius = ((xs.max() - xs.min()) + (ys.max() - ys.min())) / 4 + 0.5
-    yy, xx = np.mgrid[0:mask.shape[0], 0:mask.shape[1]]
-    nx, ny = (xx - cx) / radius, -(yy - cy) / radius
-    normal = np.stack([nx, ny, np.sqrt(np.clip(1 - nx ** 2 - ny ** 2, 0, 1))], -1)
-    return normal, mask & (nx ** 2 + ny ** 2 < 0.98)
 
 
 def sphere_error(linear: bool) -> float:
     cap = load_capture(shared_path("data", "captures", "toyps_sphere"), linear=linear)
     maps = estimate(cap.images, cap.mask, weights=[NORMAL_WEIGHTS], max_images=16, seed=0)
     truth, scored = analytic_sphere(cap.mask)
-    cos = np.clip((maps.normal[scored] * truth[scored]).sum(1), -1, 1)
-    return float(np.degrees(np.arccos(cos)).mean())
+    return float(angular_error_map(maps.normal, truth, scored)[scored].mean())
 
 
 def test_analytic_sphere_matches_a_drawn_disc():
@@ -44,6 +32,10 @@ def test_analytic_sphere_matches_a_drawn_disc():
     assert np.allclose(np.linalg.norm(normal[scored], axis=1), 1, atol=1e-6)
     assert np.allclose(normal[33, 30], [0, 0, 1], atol=0.03)  # the centre faces the camera
     assert normal[33, 45, 0] > 0.6 and normal[20, 30, 1] > 0.5  # right of centre: +x; above: +y (y up)
+    _, inner = analytic_sphere(mask, rim=0.9)  # the rim band is left out of the scored pixels
+    assert mask[33, 50] and scored[33, 50] and not inner[33, 50] and inner[33, 30]
+    with pytest.raises(ValueError, match="non-empty"):
+        analytic_sphere(np.zeros((8, 8), bool))
 
 
 @pytest.mark.slow

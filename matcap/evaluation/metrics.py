@@ -71,3 +71,23 @@ def colorbar(height: int, width: int = 12, max_deg: float = 90.0) -> np.ndarray:
     """(height, width, 3) vertical colour bar, ``max_deg`` at the top, 0 at the bottom."""
     col = np.linspace(max_deg, 0.0, max(height, 2))[:, None]
     return colorize_error(np.repeat(col, width, axis=1), max_deg)
+
+
+def analytic_sphere(mask: np.ndarray, rim: float = 0.98) -> tuple[np.ndarray, np.ndarray]:
+    """Ground truth for a photographed sphere from its silhouette (orthographic view).
+
+    mask: (H, W) bool, the sphere's disc. Returns normals (H, W, 3) in camera space (x right, y up, z toward the
+    camera; row 0 at the top), ``((x - cx) / r, -(y - cy) / r, sqrt(1 - ...))`` with the disc's centre and radius
+    taken from the mask's bounding box, and the (H, W) bool pixels to score: inside the disc, where
+    ``nx^2 + ny^2 < rim`` (at the rim one pixel spans many degrees).
+    """
+    mask = np.asarray(mask, bool)
+    if mask.ndim != 2 or not mask.any():
+        raise ValueError(f"analytic_sphere needs a non-empty (H, W) mask, got shape {mask.shape}")
+    ys, xs = np.nonzero(mask)
+    cx, cy = (xs.min() + xs.max()) / 2, (ys.min() + ys.max()) / 2
+    radius = ((xs.max() - xs.min()) + (ys.max() - ys.min())) / 4 + 0.5
+    yy, xx = np.mgrid[0:mask.shape[0], 0:mask.shape[1]]
+    nx, ny = (xx - cx) / radius, -(yy - cy) / radius
+    normal = np.stack([nx, ny, np.sqrt(np.clip(1 - nx ** 2 - ny ** 2, 0, 1))], -1).astype(np.float32)
+    return normal, mask & (nx ** 2 + ny ** 2 < rim)
