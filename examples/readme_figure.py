@@ -1,7 +1,7 @@
 """Make docs/images/bunny_capture.png: four of the input photos, the recovered normal map, the base color,
 roughness and metallic maps (when the capture has them) and a relit render.
 
-    matcap capture examples/bunny --out bunny-maps --relight matcap/data/envmaps/studio_small_03.exr
+    matcap capture examples/bunny --linear --out bunny-maps --relight matcap/data/envmaps/studio_small_03.exr
     python examples/readme_figure.py bunny-maps docs/images/bunny_capture.png
 """
 from __future__ import annotations
@@ -18,7 +18,7 @@ from matcap.results import read_result
 
 def main(result: str, out: str) -> None:
     maps = read_result(result)
-    cap = load_capture(maps.meta["input_folder"])
+    cap = load_capture(maps.meta["input_folder"], linear="--linear" in maps.meta.get("colour_handling", ""))
     picks = np.linspace(0, len(cap.images) - 1, 4).round().astype(int)
     tiles = [imageio.linear_to_srgb(np.clip(cap.images[i] / max(np.percentile(cap.images[i], 99.5), 1e-6), 0, 1))
              for i in picks]  # each photo scaled so its 99.5th percentile is white

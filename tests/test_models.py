@@ -80,8 +80,8 @@ def test_bundled_models_on_the_example_capture(tmp_path):
 
     repo = Path(__file__).resolve().parents[1]
     out = tmp_path / "bunny-maps"
-    r = subprocess.run([sys.executable, "-m", "matcap", "capture", str(repo / "examples" / "bunny"), "--out", str(out),
-                        "--max-images", "8", "--quiet"], capture_output=True, text=True, timeout=900)
+    r = subprocess.run([sys.executable, "-m", "matcap", "capture", str(repo / "examples" / "bunny"), "--linear", "--out",
+                        str(out), "--max-images", "8", "--quiet"], capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr
     info = json.loads((out / "capture.json").read_text())
     for target in ("normal", "brdf"):
