@@ -170,7 +170,7 @@ def downsample_maps(maps: MaterialMaps, max_size: int) -> MaterialMaps:
 
 def load_envmap(path: str | os.PathLike) -> np.ndarray:
     """(H, W, 3) float32 linear equirectangular radiance from an ``.exr`` or Radiance ``.hdr`` file."""
-    from matcap.imageio import read_image
+    from matcap.imageio import check_finite, read_image
 
     path = Path(path)
     if path.suffix.lower() not in ENV_SUFFIXES:
@@ -178,6 +178,7 @@ def load_envmap(path: str | os.PathLike) -> np.ndarray:
     if not path.is_file():
         raise MatcapError(f"{path}: no such file")
     pixels = read_image(path).pixels.astype(np.float32)
+    check_finite(pixels, str(path))  # a map with NaN / Inf texels is broken; negative ones are clamped when rendering
     h, w = pixels.shape[:2]
     if abs(w / h - 2.0) > 0.1:
         raise MatcapError(f"{path}: {w}x{h} is not an equirectangular (2:1) map")

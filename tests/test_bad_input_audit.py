@@ -5,6 +5,7 @@ in-process (``matcap.cli.main``) and fail before any network or renderer runs, s
 """
 from __future__ import annotations
 
+import argparse
 import json
 import pickle
 import subprocess
@@ -269,3 +270,36 @@ def test_unwritable_output_is_refused_before_the_work(tmp_path, capsys, monkeypa
     (tmp_path / "ro").mkdir()
     rc = run(capture_args(photos(tmp_path / "p"), tmp_path / "ro" / "out", "--max-side", "16"))
     one_line_error(capsys, "cannot write in", rc)
+
+
+def test_env_map_with_nan_or_inf_is_one_line_exit_2(result, tmp_path, capsys):
+    from matcap import imageio
+    from matcap.cli import main
+
+    env = np.ones((8, 16, 3), np.float32)
+    env[2, 3, 1] = np.inf
+    path = tmp_path / "broken.exr"
+    imageio.write_exr(path, env)
+    assert main(["relight", str(result), "--env", str(path), "--out", str(tmp_path / "lit"), "--spp", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "NaN or Inf" in err[0], err
+    assert not (tmp_path / "lit").exists()
+
+
+def test_warnings_are_one_line_on_the_command_line(monkeypatch):
+    import warnings
+
+    from matcap import cli
+
+    line = cli._one_line_warning("a texel is negative,\n clamped to 0", UserWarning, "x.py", 3, "code")
+    assert line == "matcap: warning: a texel is negative, clamped to 0\n"
+    during = []
+    monkeypatch.delenv("MATCAP_DEBUG", raising=False)
+    parser = cli.build_parser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    monkeypatch.setattr(parser, "parse_args", lambda argv: argparse.Namespace(
+        func=lambda args: during.append(warnings.formatwarning) or 0, command="relight"))
+    before = warnings.formatwarning
+    assert cli.main([]) == 0
+    assert during == [cli._one_line_warning]  # one line while a command runs
+    assert warnings.formatwarning is before  # and restored for the host process
