@@ -89,19 +89,14 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
         raise MatcapError(f"{folder}: no images found (PNG, JPEG, TIFF, EXR or HDR)")
     if len(photos) < 2:
         raise MatcapError(f"{folder}: only one image ({photos[0].name}); photometric stereo needs at least 2 lights")
-    images, kinds, size = [], set(), None
+    images, kinds, sizes = [], set(), []
     for p in photos:
         stored = imageio.read_image(p)
-        if size is None:
-            size = stored.pixels.shape[:2]
-        elif stored.pixels.shape[:2] != size:
-            raise MatcapError(
-                f"{p.name} is {stored.pixels.shape[1]}x{stored.pixels.shape[0]} but {photos[0].name} is "
-                f"{size[1]}x{size[0]}; all images must share one size"
-            )
+        sizes.append((p.name, stored.pixels.shape[:2]))
         arr, how = imageio.to_linear_float(stored, decode_srgb_8bit=not linear)
         kinds.add(f"{stored.kind}:{how}")
         images.append(arr)
+    size = imageio.check_same_size(sizes)
     mask_path = Path(mask) if mask is not None else found_mask
     mask_arr = read_mask(mask_path, size) if mask_path is not None else None
     if mask_arr is not None and not mask_arr.any():

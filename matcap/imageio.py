@@ -183,6 +183,21 @@ def read_image(path: str | os.PathLike) -> StoredImage:
     return StoredImage(_to_rgb3(arr, path), path)
 
 
+def check_same_size(sizes: list[tuple[str, tuple[int, int]]], what: str = "images") -> tuple[int, int]:
+    """The common (H, W) of named images, or a one-line error that names the odd ones out against the size most of
+    them share (so an odd first image is blamed, not the second)."""
+    from collections import Counter
+
+    counts = Counter(size for _, size in sizes)
+    common, n = counts.most_common(1)[0]
+    odd = [(name, size) for name, size in sizes if size != common]
+    if odd:
+        shown = ", ".join(f"{name} is {w}x{h}" for name, (h, w) in odd[:3]) + (", ..." if len(odd) > 3 else "")
+        raise MatcapError(f"{shown} but {n} of the {len(sizes)} {what} are {common[1]}x{common[0]}; all {what} must "
+                          "share one size")
+    return common
+
+
 def check_finite(arr: np.ndarray, path: str) -> None:
     """Raise a one-line error if a float image holds NaN or Inf."""
     if arr.dtype.kind == "f" and not np.isfinite(arr).all():

@@ -320,3 +320,16 @@ def test_phone_jpegs_are_turned_upright_by_their_exif_orientation(tmp_path):
     assert upright.shape == (20, 10, 3)  # portrait, as a viewer shows it
     # rotated clockwise: the stored left edge is now the top
     assert upright[:4].mean() > 0.9 and upright[6:].mean() < 0.05
+
+
+def test_an_odd_first_image_is_the_one_blamed(tmp_path):
+    from matcap import imageio
+    from matcap.capture import load_capture
+    from matcap.errors import MatcapError
+
+    imageio.write_png(tmp_path / "a.png", np.full((12, 20, 3), 0.5, np.float32), bits=8)  # the odd one
+    for name in ("b.png", "c.png", "d.png"):
+        imageio.write_png(tmp_path / name, np.full((10, 10, 3), 0.5, np.float32), bits=8)
+    with pytest.raises(MatcapError) as exc:
+        load_capture(tmp_path)
+    assert str(exc.value) == "a.png is 20x12 but 3 of the 4 images are 10x10; all images must share one size"

@@ -101,10 +101,13 @@ class PSObject:
     def __post_init__(self) -> None:
         if not self.images:
             raise MatcapError(f"{self.source or self.name}: no images")
-        h, w = self.images[0].shape[:2]
+        try:
+            h, w = imageio.check_same_size([(f"image {i}", im.shape[:2]) for i, im in enumerate(self.images)])
+        except MatcapError as exc:
+            raise MatcapError(f"{self.source or self.name}: {exc}") from None
         for i, im in enumerate(self.images):
             if im.shape != (h, w, 3):
-                raise MatcapError(f"{self.source or self.name}: image {i} is {im.shape[:2]}, expected {(h, w)}")
+                raise MatcapError(f"{self.source or self.name}: image {i} has shape {im.shape}, expected {(h, w, 3)}")
         self.mask = np.asarray(self.mask, dtype=bool)
         if self.mask.shape != (h, w):
             raise MatcapError(f"{self.source or self.name}: mask is {self.mask.shape}, images are {(h, w)}")
