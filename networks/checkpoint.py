@@ -151,12 +151,17 @@ def import_published(path: str | os.PathLike) -> tuple[SDMUniPSConfig, dict[str,
     """Read a published checkpoint with ``torch.load(weights_only=True)``; returns ``(paper config, our state
     dict)``. Anything that is not such a file is refused with a one-line ValueError."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path} is a folder; give the published checkpoint files (e.g. nml.pytmodel brdf.pytmodel)")
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
+    if path.suffix == ".safetensors":
+        raise ValueError(f"{path} is a safetensors file (matcap's own weights need no import: pass it to --weights); "
+                         "this converts the published .pytmodel checkpoints")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # UnpicklingError for disallowed objects, RuntimeError/EOFError for garbage
-        first = " ".join(str(exc).split())[:160]
+        first = " ".join(str(exc).split()).split(". ")[0][:160]  # the first sentence, not a cut-off paragraph
         raise ValueError(f"{path} is not a loadable weights-only PyTorch file ({type(exc).__name__}: {first})"
                          ) from None
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):

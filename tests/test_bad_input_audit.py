@@ -303,3 +303,15 @@ def test_warnings_are_one_line_on_the_command_line(monkeypatch):
     assert cli.main([]) == 0
     assert during == [cli._one_line_warning]  # one line while a command runs
     assert warnings.formatwarning is before  # and restored for the host process
+
+
+def test_weights_import_names_the_mistake(tmp_path, capsys):
+    folder = tmp_path / "ckpts"
+    folder.mkdir()
+    ours = tmp_path / "normal_small.safetensors"
+    ours.write_bytes(b"0" * 64)
+    for arg, needle in ((folder, "is a folder; give the published checkpoint files"),
+                        (ours, "matcap's own weights need no import")):
+        assert main(["weights", "import", str(arg), "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0], err
