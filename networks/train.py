@@ -286,9 +286,9 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
     if tc.threads:
         torch.set_num_threads(tc.threads)
     out = Path(tc.out)
-    out.mkdir(parents=True, exist_ok=True)
     scenes = list_scenes(tc.data)
     val_scenes = list_scenes(tc.val_data) if tc.val_data else []
+    out.mkdir(parents=True, exist_ok=True)  # after the data checks: a bad --data leaves no empty run folder
     cache = SceneCache(scenes)
 
     torch.manual_seed(tc.seed)
