@@ -175,7 +175,7 @@ def test_eval_does_not_replace_earlier_results_without_overwrite(diligent, tmp_p
 
 
 @pytest.mark.parametrize("extra, needle", [
-    (["--max-images", "3", "--seed", "-1"], "argument --seed: must be 0 or more"),
+    (["--max-images", "3", "--seed", "-1"], "argument --seed: must be at least 0"),
     (["--method", "sdm-unips", "--device", "bogus"], "not a torch device"),
     (["--json", "DIR"], "is a folder; give a file name"),
 ])
