@@ -178,10 +178,14 @@ def test_eval_does_not_replace_earlier_results_without_overwrite(diligent, tmp_p
     (["--max-images", "3", "--seed", "-1"], "argument --seed: must be at least 0"),
     (["--method", "sdm-unips", "--device", "bogus"], "not a torch device"),
     (["--json", "DIR"], "is a folder; give a file name"),
+    (["--markdown", "EXISTING"], "already exists; pass --overwrite to replace it"),
 ])
 def test_eval_bad_options(diligent, tmp_path, capsys, extra, needle):
-    extra = [str(tmp_path) if e == "DIR" else e for e in extra]
+    existing = tmp_path / "earlier.md"
+    existing.write_text("an earlier table")
+    extra = [str(tmp_path) if e == "DIR" else str(existing) if e == "EXISTING" else e for e in extra]
     one_line_error(capsys, needle, run(["eval", str(diligent), "--quiet", *extra]))
+    assert existing.read_text() == "an earlier table"
 
 
 # ------------------------------------------------------------------------------------------------ synth, train

@@ -78,7 +78,7 @@ def test_reference_mode_without_ground_truth(uw_like, tmp_path, capsys):
     assert main(["eval", str(uw_like), "--json", str(js), "--quiet"]) == 0
     assert "no ground-truth normals" in json.loads(js.read_text())["objects"][0]["status"]
     rc = main(["eval", str(uw_like), "--method", "least-squares-robust", "--reference", "least-squares",
-               "--json", str(js), "--quiet"])
+               "--json", str(js), "--overwrite", "--quiet"])
     assert rc == 0
     (row,) = json.loads(js.read_text())["objects"]
     assert row["status"] == "ok" and row["against"] == "least-squares" and row["group"] == "uw"
@@ -182,7 +182,7 @@ def test_linear_gives_the_network_8bit_uw_values_as_stored(tmp_path, monkeypatch
     js = tmp_path / "r.json"
     for extra in ([], ["--linear"]):
         assert main(["eval", str(tmp_path / "uw"), "--method", "sdm-unips", "--reference", "least-squares", "--json",
-                     str(js), "--quiet", *extra]) == 0
+                     str(js), "--overwrite", "--quiet", *extra]) == 0
     assert seen[0] == pytest.approx(float(imageio.srgb_to_linear(np.float32(128 / 255))), abs=1e-6)
     assert seen[1] == pytest.approx(128 / 255, abs=1e-6)
     report = json.loads(js.read_text())

@@ -59,7 +59,8 @@ def register(sub) -> None:
     p.add_argument("--out", metavar="DIR",
                    help="write results.md, results.json and error_maps/<object>.png (0-90 deg) here (a new or "
                         "empty folder unless --overwrite)")
-    p.add_argument("--overwrite", action="store_true", help="write into an --out folder that already holds files")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an --out folder that already holds files, or existing --json / --markdown files")
     p.add_argument("--json", metavar="FILE", help="also write the JSON report to FILE (atomically)")
     p.add_argument("--markdown", metavar="FILE", help="also write the Markdown table to FILE (atomically)")
     p.add_argument("--quiet", action="store_true", help="no per-object progress lines on stderr")
@@ -110,6 +111,8 @@ def run(args) -> int:
     for flag, name in (("--json", args.json), ("--markdown", args.markdown)):
         if name and Path(name).is_dir():
             raise MatcapError(f"{flag} {name} is a folder; give a file name")
+        if name and Path(name).exists() and not args.overwrite:
+            raise MatcapError(f"{flag} {name} already exists; pass --overwrite to replace it")
     report = runner.evaluate(
         args.dataset, args.method, args.reference, objects=objects, max_images=args.max_images,
         trials=args.trials, seed=args.seed, weights=args.weights, device=args.device,
