@@ -57,6 +57,27 @@ def test_least_squares_tables_and_error_maps(dataset, tmp_path, capsys):
     assert report["groups"]["diligent"]["evaluated"] == 2
     emap = imageio.read_image(out / "error_maps" / "spherePNG.png").pixels
     assert emap.dtype == np.uint8 and emap.shape == (32, 32 + 16, 3)
+    assert rows["spherePNG"]["error_map"] == str(out / "error_maps" / "spherePNG.png")  # the final place
+
+
+def test_eval_out_is_replaced_only_by_a_complete_evaluation(dataset, tmp_path, monkeypatch, capsys):
+    from matcap.evaluation import runner
+
+    out = tmp_path / "report"
+    assert main(["eval", str(dataset), "--method", "least-squares", "--out", str(out), "--quiet"]) == 0
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
+    first = runner.evaluate_object
+
+    def second_object_fails(obj, *args, **kwargs):
+        if obj.name == "spherePNG":
+            raise ValueError("disk full")
+        return first(obj, *args, **kwargs)
+
+    monkeypatch.setattr(runner, "evaluate_object", second_object_fails)
+    assert main(["eval", str(dataset), "--method", "flat", "--out", str(out), "--overwrite", "--quiet"]) == 2
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == before  # the earlier evaluation, untouched
+    assert "--method least-squares" in (out / "results.md").read_text()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".report")]  # no temporary folder left
 
 
 def test_image_subsets_protocol(dataset, tmp_path, capsys):
