@@ -14,4 +14,4 @@ python -m pip install -q -e ".[test]"
 if [ -f tools/node/package-lock.json ] && command -v npm >/dev/null 2>&1; then
     (cd tools/node && npm ci --silent --no-audit --no-fund)
 fi
-echo "matcap is installed: try 'matcap capture examples/bunny --out bunny-maps'"
+echo "matcap is installed: try 'matcap capture examples/bunny --linear --out bunny-maps'"
