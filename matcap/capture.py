@@ -166,36 +166,14 @@ def load_networks(weights: Sequence[str | os.PathLike] | None, device: str = "cp
     return {k: out[k] for k in sorted(out, key=lambda t: t != "normal")}
 
 
-def import_published_quietly(path: Path):
-    """``networks.checkpoint.import_published`` without torch's pickle-protocol UserWarning, which a file that is
-    not a checkpoint (any pickle) triggers before the one-line error: the error alone explains the problem."""
-    import warnings
-
-    from networks.checkpoint import import_published
-
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=r"Detected pickle protocol", category=UserWarning)
-        return import_published(path)
-
-
-def check_device(device: str) -> None:
-    """One-line error for a ``--device`` torch cannot use: not a device name, or CUDA absent."""
-    from networks.inference import check_device as check
-
-    try:
-        check(device)
-    except ValueError as exc:
-        raise MatcapError(str(exc)) from None
-
-
 def load_network(path: Path, device: str = "cpu") -> LoadedModel:
     """Load our safetensors weights or a published ``.pytmodel`` (never unpickled: ``weights_only=True``)."""
 
-    from networks.checkpoint import load_model
+    from networks.checkpoint import import_published, load_model
     from networks.model import SDMUniPS
 
     if path.suffix == ".pytmodel":
-        config, state = import_published_quietly(path)
+        config, state = import_published(path)
         model = SDMUniPS(config)
         model.load_state_dict(state, strict=True)
         model = model.to(device)

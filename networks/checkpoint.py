@@ -13,6 +13,7 @@ import json
 import math
 import os
 import tempfile
+import warnings
 import zlib
 from pathlib import Path
 from typing import Any, Iterable
@@ -159,7 +160,9 @@ def import_published(path: str | os.PathLike) -> tuple[SDMUniPSConfig, dict[str,
         raise ValueError(f"{path} is a safetensors file (matcap's own weights need no import: pass it to --weights); "
                          "this converts the published .pytmodel checkpoints")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # a plain pickle draws a protocol UserWarning before the refusal below
+            warnings.filterwarnings("ignore", message=r"Detected pickle protocol", category=UserWarning)
+            state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # UnpicklingError for disallowed objects, RuntimeError/EOFError for garbage
         first = " ".join(str(exc).split()).split(". ")[0][:160]  # the first sentence, not a cut-off paragraph
         raise ValueError(f"{path} is not a loadable weights-only PyTorch file ({type(exc).__name__}: {first})"

@@ -71,8 +71,9 @@ def _check_follow_ups(args) -> None:
 
 
 def run(args) -> int:
-    from matcap.capture import capture, check_device, parse_constants
+    from matcap.capture import capture, parse_constants
     from matcap.errors import MatcapError
+    from networks.inference import check_device
 
     photos = Path(args.photos)
     out = Path(args.out) if args.out else photos.resolve().parent / f"{photos.resolve().name}-matcap"

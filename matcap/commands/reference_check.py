@@ -95,10 +95,9 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
-    from matcap.capture import check_device
     from networks.checkpoint import reference_weights
     from networks.config import get_config
-    from networks.inference import predict
+    from networks.inference import check_device, predict
     from networks.model import build_model
 
     if args.threads < 0:

@@ -43,9 +43,8 @@ def _sha256(path: Path) -> str:
 def run(args: argparse.Namespace) -> int:
     if getattr(args, "weights_command", None) != "import":
         raise ValueError("choose an action: matcap weights import FILE... --out DIR")
-    from matcap.capture import import_published_quietly
     from matcap.errors import MatcapError
-    from networks.checkpoint import PUBLISHED_LICENSE, save_weights
+    from networks.checkpoint import PUBLISHED_LICENSE, import_published, save_weights
     from networks.model import build_model
 
     out_dir = Path(args.out)
@@ -54,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     converted = {}
     for name in args.files:
         path = Path(name)
-        config, state = import_published_quietly(path)
+        config, state = import_published(path)
         target = config.target
         if target in converted:
             raise MatcapError(f"two {target} checkpoints given ({converted[target][0]} and {path})")
