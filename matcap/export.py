@@ -270,6 +270,13 @@ def _load(maps: MaterialMaps | str | os.PathLike) -> tuple[MaterialMaps, str | N
     return read_result(folder), folder.resolve().name
 
 
+def check_preset(preset: str) -> str:
+    """``preset`` if it names an export preset, else a one-line error listing them."""
+    if preset not in PRESETS:
+        raise MatcapError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    return preset
+
+
 def export(
     maps: MaterialMaps | str | os.PathLike,
     out: str | os.PathLike,
@@ -299,9 +306,7 @@ def export(
     """
     from matcap.height import METHODS, ambient_occlusion, height_mesh, integrate_normals
 
-    if preset not in PRESETS:
-        raise MatcapError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    spec = PRESETS[preset]
+    spec = PRESETS[check_preset(preset)]
     normal = spec.normal if normal is None else normal
     if normal not in NORMAL_CONVENTIONS:
         raise MatcapError(f"unknown normal convention {normal!r}; choose gl or dx")

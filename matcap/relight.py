@@ -168,6 +168,13 @@ def downsample_maps(maps: MaterialMaps, max_size: int) -> MaterialMaps:
                         meta=dict(maps.meta))
 
 
+def check_spp(spp: int) -> int:
+    """``spp`` if it is a usable samples-per-pixel count (1..65536), else a one-line error."""
+    if spp < 1 or spp > 65536:
+        raise MatcapError(f"--spp must be between 1 and 65536, got {spp}")
+    return spp
+
+
 def load_envmap(path: str | os.PathLike) -> np.ndarray:
     """(H, W, 3) float32 linear equirectangular radiance from an ``.exr`` or Radiance ``.hdr`` file."""
     from matcap.imageio import check_finite, read_image
@@ -407,9 +414,7 @@ def relight(
     from renderers.relight import DEFAULT_SPP, mask_coverage, render
 
     maps = load_maps(maps_or_result_dir)
-    spp = DEFAULT_SPP if spp is None else int(spp)
-    if spp < 1 or spp > 65536:
-        raise MatcapError(f"spp must be between 1 and 65536, got {spp}")
+    spp = check_spp(DEFAULT_SPP if spp is None else int(spp))
     if tonemap_mode not in TONEMAPS:
         raise MatcapError(f"tone mapping must be one of {', '.join(TONEMAPS)}, got {tonemap_mode!r}")
     width, height = fit_size(maps, size)

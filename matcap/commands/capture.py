@@ -53,19 +53,16 @@ def register(sub) -> None:
 def _check_follow_ups(args) -> None:
     """Fail on a bad --relight / --spp / --export / --preset before the networks run and the result is written."""
     from matcap.errors import MatcapError
+    from matcap.relight import check_spp, env_paths, load_envmap
 
-    if args.spp is not None and not 1 <= args.spp <= 65536:
-        raise MatcapError(f"--spp must be between 1 and 65536, got {args.spp}")
-    if args.relight:
-        from matcap.relight import env_paths, load_envmap
-
-        for env in env_paths(args.relight):
-            load_envmap(env)
+    if args.spp is not None:
+        check_spp(args.spp)
+    for env in env_paths(args.relight) if args.relight else []:
+        load_envmap(env)
     if args.export:
-        from matcap.export import PRESETS
+        from matcap.export import check_preset
 
-        if args.preset not in PRESETS:
-            raise MatcapError(f"unknown preset {args.preset!r}; choose one of {', '.join(PRESETS)}")
+        check_preset(args.preset)
         if Path(args.export).exists() and not Path(args.export).is_dir():
             raise MatcapError(f"--export {args.export} exists and is not a folder")
 

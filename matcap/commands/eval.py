@@ -96,7 +96,7 @@ def run(args) -> int:
     from matcap.errors import MatcapError
     from matcap.evaluation import runner
     from matcap.imageio import write_text_atomic
-    from matcap.results import check_output_dir, output_dir
+    from matcap.results import output_dir
 
     objects = [o.strip() for o in args.objects.split(",") if o.strip()] if args.objects else None
     if args.objects is not None and not objects:
@@ -106,15 +106,14 @@ def run(args) -> int:
 
         check_device(args.device)
     out = Path(args.out) if args.out else None
-    if out is not None:
-        check_output_dir(out, args.overwrite)  # never replace an earlier evaluation's tables without --overwrite
     for flag, name in (("--json", args.json), ("--markdown", args.markdown)):
         if name and Path(name).is_dir():
             raise MatcapError(f"{flag} {name} is a folder; give a file name")
         if name and Path(name).exists() and not args.overwrite:
             raise MatcapError(f"{flag} {name} already exists; pass --overwrite to replace it")
     with contextlib.ExitStack() as stack:
-        # --out is built in a temporary folder that replaces it only when the evaluation is complete
+        # --out (refused when it holds files, unless --overwrite) is built in a temporary folder that replaces it
+        # only when the evaluation is complete
         tmp = stack.enter_context(output_dir(out, args.overwrite)) if out is not None else None
         report = runner.evaluate(
             args.dataset, args.method, args.reference, objects=objects, max_images=args.max_images,
