@@ -35,9 +35,10 @@ def main(argv: list[str] | None = None) -> int:
     rows = [("flat (every normal faces the camera)", None, 1), ("sRGB-decoded input (the default)", False, 1)]
     rows += [(f"linear input (`--linear`){f', --views {v}' if v > 1 else ''}", True, v)
              for v in (int(x) for x in args.views.split(","))]
+    captures = {linear: load_capture(args.capture, linear=linear) for linear in (False, True)}  # read once each
+    truth, scored = analytic_sphere(captures[False].mask)
     for label, linear, views in rows:
-        cap = load_capture(args.capture, linear=bool(linear))
-        truth, scored = analytic_sphere(cap.mask)
+        cap = captures[bool(linear)]
         t0 = time.perf_counter()
         if linear is None:
             normal = np.zeros(truth.shape, np.float32)
