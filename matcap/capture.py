@@ -178,7 +178,7 @@ def load_network(path: Path, device: str = "cpu") -> LoadedModel:
         model.load_state_dict(state, strict=True)
         model = model.to(device)
         card = {"name": path.name, "source": "published SDM-UniPS checkpoint",
-                "licence": "MIT with a non-commercial clause (Ikehata); not redistributable"}
+                "license": "MIT with a non-commercial clause (Ikehata); not redistributable"}
     else:
         model, config, card = load_model(path, device=device)
     model.eval()

@@ -127,7 +127,9 @@ def _find_keys(obj: Any, pattern: str, path: str = "") -> list[tuple[str, Any]]:
 
 
 def provenance(meta: dict[str, Any]) -> dict[str, Any]:
-    """Model name(s) and licence(s) recorded in a result's ``capture.json`` (``"unknown"`` when not recorded)."""
+    """Model name(s) and licence(s) recorded in a result's ``capture.json`` (``"unknown"`` when not recorded), as
+    ``{target: {"model": name, "license": text}}`` (cards spell the key ``license``; an old ``licence`` is read
+    too)."""
     models: dict[str, Any] = {}
     recorded = meta.get("models") if isinstance(meta.get("models"), dict) else {}
     for target, info in recorded.items():
@@ -136,12 +138,12 @@ def provenance(meta: dict[str, Any]) -> dict[str, Any]:
         card = info.get("card") if isinstance(info.get("card"), dict) else {}
         name = info.get("name") or card.get("name") or info.get("weights") or card.get("preset") or "unknown"
         licences = [v for _, v in _find_keys(info, r"licen[cs]e")]
-        models[target] = {"model": str(name), "licence": str(licences[0]) if licences else "unknown"}
+        models[target] = {"model": str(name), "license": str(licences[0]) if licences else "unknown"}
     if not models:
         names = [v for k, v in _find_keys(meta, r"^(model|model_name|weights)$")]
         licences = [v for _, v in _find_keys(meta, r"licen[cs]e")]
         models["all"] = {"model": str(names[0]) if names else "unknown",
-                         "licence": str(licences[0]) if licences else "unknown"}
+                         "license": str(licences[0]) if licences else "unknown"}
     return models
 
 
@@ -154,12 +156,10 @@ def _safe_name(name: str) -> str:
 
 
 def _load(maps: MaterialMaps | str | os.PathLike) -> tuple[MaterialMaps, str | None]:
+    """The maps, and the default export name (:func:`matcap.formats.default_name`)."""
     if isinstance(maps, MaterialMaps):
         return maps, None
-    folder = Path(maps)
-    if not folder.is_dir():
-        raise MatcapError(f"{folder}: not a result folder")
-    return formats.load_maps(folder), folder.resolve().name
+    return formats.load_maps(maps), formats.default_name(maps)
 
 
 def check_preset(preset: str) -> str:
@@ -222,7 +222,8 @@ def export(
     occlusion: bool = True,
     ao_radius: float | None = None,
 ) -> dict[str, str]:
-    """Write the texture set of ``maps`` (a MaterialMaps or a result folder) into ``out``.
+    """Write the texture set of ``maps`` (a MaterialMaps or any map source :func:`matcap.formats.load_maps`
+    reads: a result folder, an earlier export, a texture set, a ``.glb``) into ``out``.
 
     name: file prefix (default: the result folder's name, else ``"material"``). preset: one of :data:`PRESETS`.
     normal: ``"gl"`` / ``"dx"``; ``None`` = the preset's convention. ``NAME_normal.png`` is always OpenGL;

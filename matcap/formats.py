@@ -532,10 +532,13 @@ def _camera_maps(folder: Path, layout: str, meta_file: str) -> MaterialMaps:
 
 
 def read_result(folder: str | os.PathLike) -> MaterialMaps:
-    """A capture result folder (see the ``result`` layout) as linear :class:`MaterialMaps`."""
+    """A capture result folder (see the ``result`` layout) as linear :class:`MaterialMaps`. A synthetic scene
+    folder is read as one (:func:`read_scene`: its base colour is linear, not sRGB)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise MatcapError(f"{folder}: not a result folder")
+    if is_scene(folder):
+        return read_scene(folder)
     return _camera_maps(folder, "result", "capture.json")
 
 
@@ -594,7 +597,7 @@ def read_export(json_path: str | os.PathLike) -> MaterialMaps:
 
 
 def _tokens(stem: str) -> list[str]:
-    stem = re.sub(r"([a-z0-9])([A-Z])", r"\1_\2", stem)  # camelCase -> camel_Case
+    stem = re.sub(r"([a-z])([A-Z])", r"\1_\2", stem)  # camelCase -> camel_Case
     parts = [t for t in re.split(r"[_\-. ]+", stem.lower()) if t]
     return [t for t in parts if not _IGNORED_TOKENS.match(t)]
 
@@ -799,6 +802,16 @@ def identify(source: str | os.PathLike) -> tuple[str, Path]:
         return "glb", glbs[0]
     raise MatcapError(f"{path}: no basecolor.* or normal_gl.* texture, normal.exr or .glb (not a capture result "
                       "or texture set; docs/formats.md lists the names that load)")
+
+
+def default_name(source: str | os.PathLike) -> str:
+    """The name a map source gives its export: ``NAME`` of an export's ``NAME.json`` / a ``NAME.glb``, else the
+    folder's name."""
+    try:
+        kind, path = identify(source)
+    except MatcapError:
+        return Path(source).resolve().name
+    return path.stem if kind in ("export", "glb") else path.resolve().name
 
 
 READERS = {"result": read_result, "scene": read_scene, "export": read_export, "texture set": read_texture_set,
