@@ -553,7 +553,14 @@ def is_scene(folder: Path) -> bool:
 
 
 def is_result(folder: Path) -> bool:
-    return not is_scene(folder) and ((folder / "normal.exr").is_file() or (folder / "normal.png").is_file())
+    """A capture result folder: ``normal.exr``, or ``normal.png`` with ``mask.png`` or ``capture.json`` (a lone
+    ``normal.png`` beside ``basecolor.png`` is a plain texture set's OpenGL map)."""
+    if is_scene(folder):
+        return False
+    if (folder / "normal.exr").is_file():
+        return True
+    return (folder / "normal.png").is_file() and ((folder / "mask.png").is_file()
+                                                  or (folder / "capture.json").is_file())
 
 
 def read_export(json_path: str | os.PathLike) -> MaterialMaps:

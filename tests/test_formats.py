@@ -385,3 +385,16 @@ def test_library_capture_relights_and_exports_reading_the_env_map_once(tmp_path,
     assert (tmp_path / "tex" / "res_normal_dx.png").is_file()
     export(out, tmp_path / "again", preset="unreal")
     compare_sets(tmp_path / "tex", tmp_path / "again", "res")
+
+
+def test_plain_names_are_a_texture_set_not_a_result(tmp_path):
+    """basecolor.png + normal.png (no normal.exr, mask or capture.json) is a texture set whose normal is OpenGL."""
+    folder = tmp_path / "plain"
+    folder.mkdir()
+    imageio.write_png(folder / "basecolor.png", np.full((6, 6, 3), 0.5), bits=8)
+    imageio.write_png(folder / "normal.png", np.tile([0.5, 0.75, 1.0], (6, 6, 1)), bits=8)
+    assert formats.identify(folder) == ("texture set", folder)
+    maps = formats.load_maps(folder)
+    assert maps.mask.all() and maps.normal[0, 0, 1] > 0.4
+    imageio.write_png(folder / "mask.png", np.ones((6, 6)), bits=8)  # now laid out as a result (normal.png only)
+    assert formats.identify(folder) == ("result", folder)
