@@ -45,7 +45,7 @@ class MapFile:
     file: name; ``{name}`` = export name, ``{render}`` = render name, ``{index}`` = photo number.
     channels: what each stored channel holds: ``base_color.r|g|b``, ``normal.x|y|z``, ``roughness``, ``smoothness``
         (1 - roughness), ``metallic``, ``occlusion``, ``height``, ``mask``, ``0``, ``1``, ``image.*`` / ``radiance.*``
-        (linear), ``display.*`` (display-encoded), ``coverage``, ``residual``, ``light_variation``; () if no image.
+        (linear), ``display.*`` (display-encoded: renders, visualisations), ``coverage``; () if not an image.
     bits: 8 / 16 (PNG), 32 (float32 EXR), 0 (not an image: JSON, glb, PLY, npz).
     colour: ``"sRGB"``: base colour channels are sRGB-encoded on disk (decoded once when read); ``"linear"``.
     normal: ``"camera"`` (camera space, 0 off-mask), ``"gl"`` / ``"dx"`` (tangent space, +Y / -Y); integer files
@@ -70,6 +70,7 @@ class MapFile:
 
 RGB_BASE = ("base_color.r", "base_color.g", "base_color.b")
 XYZ = ("normal.x", "normal.y", "normal.z")
+DISPLAY = ("display.r", "display.g", "display.b")
 
 
 def _table(*files: MapFile) -> dict[str, MapFile]:
@@ -79,15 +80,15 @@ def _table(*files: MapFile) -> dict[str, MapFile]:
 REFINE_FILES = (
     MapFile("lights", "lights.json", description="refinement: the fitted lights (JSON, write_json)"),
     MapFile("fit", "fit.json", description="refinement: fit settings and losses (JSON, write_json)"),
-    MapFile("residual", "residual.png", ("residual",), 8, "linear",
-            description="refinement: per-pixel residual, grey visualisation scaled to [0, 1] (not data)"),
-    MapFile("light_variation", "light_variation.png", ("light_variation",), 8, "linear",
-            description="refinement: how much the light varies per pixel, grey visualisation in [0, 1] (not data)"),
+    MapFile("residual", "residual.png", DISPLAY, 8, "sRGB",
+            description="refinement: per-pixel residual, 0 .. vmax blue -> red, background black (write_visual)"),
+    MapFile("light_variation", "light_variation.png", DISPLAY, 8, "sRGB",
+            description="refinement: how much the light varies per pixel, 0 .. vmax blue -> red (write_visual)"),
 )
 RENDER_FILES = (
     MapFile("render_exr", "relight_{render}.exr", ("radiance.r", "radiance.g", "radiance.b"), 32, "linear",
             description="relit render, linear radiance, black background"),
-    MapFile("render_png", "relight_{render}.png", ("display.r", "display.g", "display.b", "coverage"), 8, "sRGB",
+    MapFile("render_png", "relight_{render}.png", DISPLAY + ("coverage",), 8, "sRGB",
             description="relit render tone mapped to display sRGB; alpha = mask coverage (RGB where fully covered)"),
 )
 
@@ -278,19 +279,21 @@ def write_json(path: str | os.PathLike, obj: Any) -> Path:
     return Path(path)
 
 
-def write_visual(folder: str | os.PathLike, key: str, values: np.ndarray, *, scale: float | None = None,
+def write_visual(folder: str | os.PathLike, key: str, values: np.ndarray, *, vmax: float,
                  layout: str = "result") -> Path:
-    """Write a grey visualisation file of the table (``residual.png``, ``light_variation.png``): (H, W) values
-    divided by ``scale`` (default: their 99th percentile, so a few outliers do not wash it out), clipped to [0, 1],
-    8-bit. Returns the path."""
+    """Write a visualisation file of the table (``residual.png``, ``light_variation.png``): (H, W) values, 0 ..
+    ``vmax`` mapped blue -> red (the error-map colours of ``matcap eval``), NaN = background (black), 8-bit RGB.
+    A picture for people, not data. Returns the path."""
+    from matcap.evaluation.metrics import colorize_error
+
     spec = LAYOUTS[layout][key]
-    v = np.nan_to_num(np.asarray(values, np.float32))
+    v = np.asarray(values, np.float64)
     if v.ndim != 2:
         raise ValueError(f"{spec.file}: expected (H, W) values, got {v.shape}")
-    if scale is None:
-        scale = float(np.percentile(v, 99)) if v.size else 1.0
-    v = v / scale if scale > 0 else np.zeros_like(v)
-    return write_file(folder, spec, {spec.channels[0]: np.clip(v, 0.0, 1.0)})
+    if not vmax > 0:
+        raise ValueError(f"{spec.file}: vmax must be positive, got {vmax}")
+    rgb = colorize_error(v, max_deg=vmax, background=0.0)
+    return write_file(folder, spec, {c: rgb[..., i] for i, c in enumerate(DISPLAY)})
 
 
 def write_result_maps(maps: MaterialMaps, folder: str | os.PathLike) -> list[str]:
