@@ -564,6 +564,13 @@ class SDMUniPS(nn.Module):
     H = W, a multiple of ``config.canonical_resolution``.
     """
 
+    #: Decoder stages that run in float32 under autocast (bf16). Measured on the `paper` preset (512^2, K=16, 3,000
+    #: pixels, deterministic "bench" weights; normals vs all-fp32): all bf16 0.66 deg mean; bf16 encoder with an fp32
+    #: decoder 0.017 deg, so the decoder's rounding is what matters; glc_upsample in fp32 0.40 deg (+25% decoder
+    #: time), glc_aggregation in fp32 0.43 deg (+50%), regressor or heads in fp32 no gain. See
+    #: benchmarks/bench_speed.py for whole-image numbers.
+    fp32_under_autocast: tuple[str, ...] = ("glc_upsample",)
+
     def __init__(self, config: SDMUniPSConfig):
         super().__init__()
         config.validate()
@@ -680,11 +687,22 @@ class SDMUniPS(nn.Module):
             with _no_autocast(feats.device):
                 f = F.grid_sample(feats, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
             f = f.reshape(b, n, -1, mc).permute(0, 3, 1, 2).reshape(b * mc, n, -1)     # (B*mc, N, C)
-            x = self.glc_upsample(torch.cat([o, f.to(o.dtype)], dim=-1))              # (B*mc, N, Du)
-            x = self.glc_aggregation(torch.cat([o.to(x.dtype), x], dim=-1))           # (B*mc, Da)
+            x = self._stage("glc_upsample", torch.cat([o, f.to(o.dtype)], dim=-1))   # (B*mc, N, Du)
+            x = self._stage("glc_aggregation", torch.cat([o.to(x.dtype), x], dim=-1))  # (B*mc, Da)
             pooled.append(x.reshape(b, mc, -1))
         x = torch.cat(pooled, dim=1) if len(pooled) > 1 else pooled[0]
         return self.regressor(x, clamp=clamp)
+
+    def _stage(self, name: str, x: torch.Tensor) -> torch.Tensor:
+        """Run decoder stage ``name`` on x; at inference under autocast the stages in :attr:`fp32_under_autocast`
+        run in float32 (training keeps autocast everywhere)."""
+        module = getattr(self, name)
+        dev = x.device.type
+        if (not self.training and name in self.fp32_under_autocast and dev in ("cpu", "cuda")
+                and torch.is_autocast_enabled(dev)):
+            with torch.autocast(device_type=dev, enabled=False):
+                return module(x.float())
+        return module(x)
 
     def forward(self, images: torch.Tensor, mask: torch.Tensor, pixel_index: torch.Tensor, clamp: bool = True
                 ) -> dict[str, torch.Tensor]:

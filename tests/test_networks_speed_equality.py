@@ -150,3 +150,25 @@ if __name__ == "__main__":
                 out[f"{case}/{key}"] = value
     np.savez_compressed(STORED, **out)
     print(f"wrote {STORED}")
+
+
+def test_bf16_inference_keeps_the_listed_decoder_stages_in_fp32():
+    """Under bf16 autocast at inference glc_upsample (model.fp32_under_autocast) sees and returns float32; the
+    other stages run in bf16; training keeps autocast everywhere."""
+    cfg = get_config("tiny", "normal")
+    model = build_model(cfg, reference_weights(cfg, "eq"))
+    assert model.fp32_under_autocast == ("glc_upsample",)
+    seen = {}
+    for name in ("glc_upsample", "glc_aggregation"):
+        getattr(model, name).register_forward_hook(
+            lambda mod, inp, out, name=name: seen.__setitem__(name, (inp[0].dtype, out.dtype)))
+    x = torch.rand(1, 2, 3, 64, 64)
+    mask = torch.ones(1, 1, 64, 64)
+    idx = torch.arange(100)[None]
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        with torch.inference_mode():
+            model.eval()(x, mask, idx)
+        assert seen["glc_upsample"] == (torch.float32, torch.float32)
+        assert seen["glc_aggregation"][1] == torch.bfloat16
+        model.train()(x, mask, idx)
+        assert seen["glc_upsample"][1] == torch.bfloat16
