@@ -192,10 +192,17 @@ class PMA(nn.Module):
         nn.init.xavier_uniform_(self.S)
         self.mab = MAB(dim, dim, dim, heads, ff, ln=False, scale=scale, dropout=dropout)
 
+    #: Set by SDMUniPS from its ``fp32_under_autocast``: pool in float32 at inference under autocast.
+    fp32_under_autocast = False
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x: (B, L, dim) -> (B, 1, dim)."""
         if _REFERENCE or self.training:
             return self.mab(self.S.expand(x.shape[0], -1, -1).to(x.dtype), x)
+        dev = x.device.type
+        if self.fp32_under_autocast and dev in ("cpu", "cuda") and torch.is_autocast_enabled(dev):
+            with torch.autocast(device_type=dev, enabled=False):
+                return self._pool(x.float())
         return self._pool(x)
 
     def _pool(self, x: torch.Tensor) -> torch.Tensor:
@@ -564,12 +571,13 @@ class SDMUniPS(nn.Module):
     H = W, a multiple of ``config.canonical_resolution``.
     """
 
-    #: Decoder stages that run in float32 under autocast (bf16). Measured on the `paper` preset (512^2, K=16, 3,000
-    #: pixels, deterministic "bench" weights; normals vs all-fp32): all bf16 0.66 deg mean; bf16 encoder with an fp32
-    #: decoder 0.017 deg, so the decoder's rounding is what matters; glc_upsample in fp32 0.40 deg (+25% decoder
-    #: time), glc_aggregation in fp32 0.43 deg (+50%), regressor or heads in fp32 no gain. See
-    #: benchmarks/bench_speed.py for whole-image numbers.
-    fp32_under_autocast: tuple[str, ...] = ("glc_upsample",)
+    #: Decoder parts that run in float32 at inference under autocast (bf16). Measured on the `paper` preset (512^2,
+    #: K=16, 3,000 pixels, deterministic "bench" weights; normals vs all-fp32): all bf16 0.66 deg mean; bf16 encoder
+    #: with an fp32 decoder 0.017 deg, so the decoder's rounding is what matters; glc_upsample in fp32 0.40 deg (+25%
+    #: decoder time), + the PMA pooling 0.34 deg (the PMA costs little since its K/V are reassociated);
+    #: glc_aggregation in fp32 0.43 deg (+50%), regressor or heads in fp32 no gain. Whole-image numbers:
+    #: benchmarks/bench_speed.py. Names: "glc_upsample", "glc_aggregation.pma".
+    fp32_under_autocast: tuple[str, ...] = ("glc_upsample", "glc_aggregation.pma")
 
     def __init__(self, config: SDMUniPSConfig):
         super().__init__()
@@ -579,6 +587,7 @@ class SDMUniPS(nn.Module):
         self.glc_upsample = GLCUpsample(config)
         self.glc_aggregation = GLCAggregation(config)
         self.regressor = Regressor(config)
+        self.glc_aggregation.aggregation.dec[0].fp32_under_autocast = "glc_aggregation.pma" in self.fp32_under_autocast
         self._init_weights()
 
     # -------------------------------------------------------------------- init

@@ -153,15 +153,15 @@ if __name__ == "__main__":
 
 
 def test_bf16_inference_keeps_the_listed_decoder_stages_in_fp32():
-    """Under bf16 autocast at inference glc_upsample (model.fp32_under_autocast) sees and returns float32; the
-    other stages run in bf16; training keeps autocast everywhere."""
+    """Under bf16 autocast at inference glc_upsample and the PMA pooling (model.fp32_under_autocast) return
+    float32; the other stages run in bf16; training keeps autocast everywhere."""
     cfg = get_config("tiny", "normal")
     model = build_model(cfg, reference_weights(cfg, "eq"))
-    assert model.fp32_under_autocast == ("glc_upsample",)
+    assert model.fp32_under_autocast == ("glc_upsample", "glc_aggregation.pma")
     seen = {}
-    for name in ("glc_upsample", "glc_aggregation"):
-        getattr(model, name).register_forward_hook(
-            lambda mod, inp, out, name=name: seen.__setitem__(name, (inp[0].dtype, out.dtype)))
+    for name, mod in (("glc_upsample", model.glc_upsample), ("aggregation SABs", model.glc_aggregation.aggregation.enc),
+                      ("pma", model.glc_aggregation.aggregation.dec[0])):
+        mod.register_forward_hook(lambda mod, inp, out, name=name: seen.__setitem__(name, (inp[0].dtype, out.dtype)))
     x = torch.rand(1, 2, 3, 64, 64)
     mask = torch.ones(1, 1, 64, 64)
     idx = torch.arange(100)[None]
@@ -169,6 +169,7 @@ def test_bf16_inference_keeps_the_listed_decoder_stages_in_fp32():
         with torch.inference_mode():
             model.eval()(x, mask, idx)
         assert seen["glc_upsample"] == (torch.float32, torch.float32)
-        assert seen["glc_aggregation"][1] == torch.bfloat16
+        assert seen["pma"] == (torch.bfloat16, torch.float32)
+        assert seen["aggregation SABs"][1] == torch.bfloat16
         model.train()(x, mask, idx)
         assert seen["glc_upsample"][1] == torch.bfloat16
