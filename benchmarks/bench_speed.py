@@ -21,6 +21,8 @@ Usage:
   python benchmarks/bench_speed.py                               # stages small + paper 512^2 K=16 fp32 and bf16
   python benchmarks/bench_speed.py --presets small --dtypes fp32 # one preset / dtype
   python benchmarks/bench_speed.py --capture                     # also the bundled example end to end
+  python benchmarks/bench_speed.py --threads 1 --sets 1          # 1 thread (CPU time ~ work, robust to load);
+                                                                 #   decoder timed on 1 of the 17 sample sets
   python benchmarks/bench_speed.py --large small --tiles 16      # 2048^2 K=16 scalable (new code only; --tiles N
                                                                  #   runs the first N of the 16 tiles and
                                                                  #   extrapolates, labelled as such)
@@ -38,6 +40,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = "f87ac8c"
+DECODER_TIMERS = {"glc_upsample", "glc_aggregation", "regressor attention", "heads", "decode"}
 STAGES = [
     ("encoder", "backbone"), ("encoder", "light-axis attention"), ("encoder", "UPerNet fusion"),
     ("encoder", "resize/interleave/smoothing"),
@@ -69,8 +72,10 @@ class _Timers:
         return self.t.get(name, [0.0, 0.0])
 
 
-def child_stages(preset: str, side: int, k: int, dtype: str, threads: int, out_npz: str) -> dict:
-    """Run predict() once with per-stage timers; returns the record (times, RSS)."""
+def child_stages(preset: str, side: int, k: int, dtype: str, threads: int, out_npz: str, sets: int = 0) -> dict:
+    """Run predict() once with per-stage timers; returns the record (times, RSS). ``sets`` > 0: encode, then
+    decode only the first ``sets`` sample sets exactly as predict() forms them (same shuffle), and scale the
+    decoder times by (number of sets) / sets; the normals cover those pixels only."""
     import resource
 
     import numpy as np
@@ -87,6 +92,7 @@ def child_stages(preset: str, side: int, k: int, dtype: str, threads: int, out_n
     cfg = get_config(preset, "normal")
     model = build_model(cfg, reference_weights(cfg, "bench")).eval()
     images, mask = make_object(side, k)
+    n_pixels = int(mask.sum())
     tm = _Timers()
     enc = model.image_encoder
     tm.wrap(enc.backbone, "forward", "backbone")
@@ -100,15 +106,42 @@ def child_stages(preset: str, side: int, k: int, dtype: str, threads: int, out_n
     tm.wrap(model, "encode", "encode")
     tm.wrap(model, "decode", "decode")
     autocast = torch.bfloat16 if dtype == "bf16" else None
+    factor = 1.0
     w0, c0 = time.perf_counter(), time.process_time()
-    out = predict(model, torch.from_numpy(images), torch.from_numpy(mask), autocast_dtype=autocast)
+    if not sets:
+        out = predict(model, torch.from_numpy(images), torch.from_numpy(mask), autocast_dtype=autocast)
+        normal = out["normal"]
+    else:
+        from networks.inference import split_sample_sets
+
+        x, mb = torch.from_numpy(images), torch.from_numpy(mask)
+        ids = torch.nonzero(mb.reshape(-1), as_tuple=False).squeeze(1)
+        ids = ids[torch.randperm(ids.numel(), generator=torch.Generator().manual_seed(0))]
+        sizes = split_sample_sets(int(ids.numel()), cfg.pixel_samples)
+        factor = len(sizes) / min(sets, len(sizes))
+        flat = np.zeros((side * side, 3), np.float32)
+        ctx = torch.autocast("cpu", dtype=autocast) if autocast else torch.autocast("cpu", enabled=False)
+        with torch.inference_mode(), ctx:
+            feats = model.encode(x[None], mb[None, None].float())
+            start = 0
+            for size in sizes[:sets]:
+                sel = ids[start:start + size]
+                flat[sel.numpy()] = model.decode(x[None], mb[None, None].float(), feats, sel[None])["normal"][0].float()
+                start += size
+        normal = flat.reshape(side, side, 3)
+        mask = mask & (np.linalg.norm(normal, axis=-1) > 0)
     total = [time.perf_counter() - w0, time.process_time() - c0]
-    np.savez(out_npz, normal=out["normal"], mask=mask)
+    np.savez(out_npz, normal=normal, mask=mask)
 
     def minus(a, *bs):
         return [a[i] - sum(b[i] for b in bs) for i in range(2)]
 
-    g = tm.get
+    def g(name):
+        v = tm.get(name)
+        return [t * factor for t in v] if name in DECODER_TIMERS else v
+
+    if factor != 1.0:  # decoder extrapolated: the total is encoder + extrapolated decoder + other
+        total = [total[i] + (factor - 1.0) * tm.get("decode")[i] for i in range(2)]
     stages = {
         "backbone": g("backbone"), "light-axis attention": g("light-axis attention"),
         "UPerNet fusion": g("UPerNet fusion"),
@@ -122,7 +155,7 @@ def child_stages(preset: str, side: int, k: int, dtype: str, threads: int, out_n
     }
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return {"stages": stages, "encoder": g("encode"), "decoder": g("decode"), "total": total,
-            "peak_rss_mb": rss, "pixels": int(mask.sum())}
+            "peak_rss_mb": rss, "pixels": n_pixels, "decoder_factor": factor}
 
 
 def child_large(preset: str, k: int, dtype: str, threads: int, tiles: int) -> dict:
@@ -251,13 +284,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--large-dtype", default="fp32")
     ap.add_argument("--tiles", type=int, default=16, help="tiles of the 2048^2 row to run (16 = all)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--sets", type=int, default=0,
+                    help="decode only the first N sample sets and extrapolate the decoder times (0 = all)")
     ap.add_argument("--json", help="also write every record as JSON here")
     ap.add_argument("--_child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args._child:
         c = json.loads(args._child)
         if c[0] == "stages":
-            rec = child_stages(c[1], c[2], c[3], c[4], args.threads, c[5])
+            rec = child_stages(c[1], c[2], c[3], c[4], args.threads, c[5], c[6])
         elif c[0] == "large":
             rec = child_large(c[1], c[2], c[3], args.threads, c[4])
         else:
@@ -287,13 +322,15 @@ def main(argv: list[str] | None = None) -> int:
             for dtype in args.dtypes.split(","):
                 for name, tree in versions:
                     npz = os.path.join(tmp, f"{preset}-{dtype}-{name}.npz")
-                    runs[(dtype, name)] = _run_child(tree, ["stages", preset, args.side, args.k, dtype, npz],
-                                                     args.threads)
+                    runs[(dtype, name)] = _run_child(tree, ["stages", preset, args.side, args.k, dtype, npz,
+                                                            args.sets], args.threads)
                     runs[(dtype, name)]["npz"] = npz
             records[preset] = {f"{d}-{n}": r for (d, n), r in runs.items()}
             names = [n for n, _ in versions]
-            print(f"\n## {preset} {args.side}^2 K={args.k} ({runs[next(iter(runs))]['pixels']} pixels): seconds",
-                  flush=True)
+            first = runs[next(iter(runs))]
+            extra = (f"; decoder EXTRAPOLATED x{first['decoder_factor']:.1f} from {args.sets} sample set(s)"
+                     if first["decoder_factor"] != 1.0 else "")
+            print(f"\n## {preset} {args.side}^2 K={args.k} ({first['pixels']} pixels{extra}): seconds", flush=True)
             for dtype in args.dtypes.split(","):
                 hdr = f"{preset + ' ' + dtype:44s}"
                 for n in names:
