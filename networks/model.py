@@ -28,6 +28,24 @@ from networks.config import SDMUniPSConfig
 
 OUTPUT_KEYS = {"normal": ("normal",), "brdf": ("normal", "base_color", "roughness", "metallic")}
 
+# ------------------------------------------------------------------------------------------ reference switch
+_REFERENCE = False
+
+
+@contextlib.contextmanager
+def reference_ops():
+    """Run the straightforward implementation (as before the speed work of issue #18) inside this block: explicit
+    attention with separate K/V projections, the PMA's K/V projected per image, the 2-D convolution Gaussian
+    smoothing and the UPerNet head in contiguous (NCHW) memory. Same function, other rounding; the equality tests
+    compare the two (``tests/test_networks_speed_equality.py``). Not thread-safe (a module-level switch)."""
+    global _REFERENCE
+    was = _REFERENCE
+    _REFERENCE = True
+    try:
+        yield
+    finally:
+        _REFERENCE = was
+
 
 # ----------------------------------------------------------------------------------------------------- attention
 #: Key sequences up to this length use an explicit softmax(QK^T)V: for the short light-axis sequences (a handful of
@@ -45,6 +63,35 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, scale: float, d
     if training and dropout > 0:
         w = F.dropout(w, dropout)
     return w @ v
+
+
+def _fused_linear_gelu_works() -> bool:
+    """Whether oneDNN's fused linear + exact GELU (``torch.ops.mkldnn._linear_pointwise``) runs here and agrees
+    with ``gelu(linear(.))`` (a private op: checked once, the plain ops are used otherwise)."""
+    try:
+        g = torch.Generator().manual_seed(0)
+        x, w = torch.randn(8, 5, generator=g), torch.randn(6, 5, generator=g)
+        with torch.inference_mode():
+            y = torch.ops.mkldnn._linear_pointwise(x, w, None, "gelu", [], "none")
+        return bool(torch.allclose(y, F.gelu(F.linear(x, w)), atol=1e-6))
+    except Exception:  # noqa: BLE001 - any failure: not available
+        return False
+
+
+_FUSED_GELU: bool | None = None
+
+
+def _linear_gelu(x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``gelu(x @ weight.T)`` (exact erf GELU). x: (M, in) -> (M, out). One fused oneDNN call for float32 CPU
+    tensors outside autocast and autograd, else the two plain ops."""
+    global _FUSED_GELU
+    if (x.device.type == "cpu" and x.dtype == torch.float32 and weight.dtype == torch.float32
+            and not torch.is_autocast_enabled("cpu") and not (torch.is_grad_enabled() and weight.requires_grad)):
+        if _FUSED_GELU is None:
+            _FUSED_GELU = _fused_linear_gelu_works()
+        if _FUSED_GELU:
+            return torch.ops.mkldnn._linear_pointwise(x.contiguous(), weight, None, "gelu", [], "none")
+    return F.gelu(F.linear(x, weight))
 
 
 class MAB(nn.Module):
@@ -78,6 +125,35 @@ class MAB(nn.Module):
 
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """x: (B, Lq, dim_q) queries; y: (B, Lk, dim_k) keys/values. Returns (B, Lq, dim_out)."""
+        if _REFERENCE or self.training:
+            return self._forward_reference(x, y)
+        xq = self.ln0(x) if self.ln0 is not None else x
+        q = self.fc_q(xq)
+        d, h = self.dim_out, self.heads
+        if y is x:
+            # One GEMM for K and V (the input is read once); same products, summed in the same order.
+            k, v = F.linear(y, torch.cat([self.fc_k.weight, self.fc_v.weight])).split(d, dim=-1)
+        else:
+            k, v = self.fc_k(y), self.fc_v(y)
+        # Strided head views straight into the fused kernel (no copies): (B, L, d) -> (B, h, L, d/h).
+        a = F.scaled_dot_product_attention(q.unflatten(-1, (h, d // h)).transpose(1, 2),
+                                           k.unflatten(-1, (h, d // h)).transpose(1, 2),
+                                           v.unflatten(-1, (h, d // h)).transpose(1, 2), scale=self.scale)
+        o = q + a.transpose(1, 2).reshape(q.shape)
+        return self._feed_forward(o, 0.0)
+
+    def _feed_forward(self, o: torch.Tensor, p: float) -> torch.Tensor:
+        o_ = self.ln1(o) if self.ln1 is not None else o
+        if not (_REFERENCE or self.training):
+            # GELU fused into the first GEMM (oneDNN post-op, exact erf) and the residual into the second (addmm).
+            hidden = _linear_gelu(o_.reshape(-1, o_.shape[-1]), self.fc_o1.weight)
+            out = torch.addmm(o.reshape(-1, o.shape[-1]), hidden, self.fc_o2.weight.t())
+            return out.view(o.shape)
+        hidden = F.dropout(F.gelu(self.fc_o1(o_)), p, self.training)
+        return o + F.dropout(self.fc_o2(hidden), p, self.training)
+
+    def _forward_reference(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """The straightforward forward pass (training uses it: its short-sequence attention is faster fwd+bwd)."""
         p = self.dropout if self.training else 0.0
         xq = self.ln0(x) if self.ln0 is not None else x
         q = self.fc_q(xq)
@@ -91,9 +167,7 @@ class MAB(nn.Module):
         vh = v.view(b, lk, h, d // h).transpose(1, 2)
         a = attention(qh, kh, vh, self.scale, p, self.training)
         o = q + a.transpose(1, 2).reshape(b, lq, d)
-        o_ = self.ln1(o) if self.ln1 is not None else o
-        hidden = F.dropout(F.gelu(self.fc_o1(o_)), p, self.training)
-        return o + F.dropout(self.fc_o2(hidden), p, self.training)
+        return self._feed_forward(o, p)
 
 
 class SAB(nn.Module):
@@ -118,9 +192,36 @@ class PMA(nn.Module):
         nn.init.xavier_uniform_(self.S)
         self.mab = MAB(dim, dim, dim, heads, ff, ln=False, scale=scale, dropout=dropout)
 
+    #: Set by SDMUniPS from its ``fp32_under_autocast``: pool in float32 at inference under autocast.
+    fp32_under_autocast = False
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x: (B, L, dim) -> (B, 1, dim)."""
-        return self.mab(self.S.expand(x.shape[0], -1, -1).to(x.dtype), x)
+        if _REFERENCE or self.training:
+            return self.mab(self.S.expand(x.shape[0], -1, -1).to(x.dtype), x)
+        dev = x.device.type
+        if self.fp32_under_autocast and dev in ("cpu", "cuda") and torch.is_autocast_enabled(dev):
+            with torch.autocast(device_type=dev, enabled=False):
+                return self._pool(x.float())
+        return self._pool(x)
+
+    def _pool(self, x: torch.Tensor) -> torch.Tensor:
+        """Inference form of ``mab(S, x)``: the query is one constant vector, so its scores against the keys are
+        ``x @ (W_k,h^T q_h)`` per head and the values are projected after pooling, ``W_v,h (sum_j a_j x_j)``: the
+        K and V projections of all L elements (2 L d^2 per set) become ``L d h + h d^2``. Same sums, reassociated."""
+        mab = self.mab
+        b, length, dim_in = x.shape
+        d, h = mab.dim_out, mab.heads
+        dh = d // h
+        q = mab.fc_q(self.S.reshape(1, -1).to(x.dtype))                                   # (1, d)
+        wk = mab.fc_k.weight.to(x.dtype).reshape(h, dh, dim_in)
+        u = torch.einsum("he,hec->ch", q.reshape(h, dh), wk) * mab.scale                 # (dim_in, h)
+        w = torch.softmax((x @ u).transpose(1, 2), dim=-1)                               # (B, h, L)
+        pooled = torch.bmm(w, x)                                                          # (B, h, dim_in)
+        wv = mab.fc_v.weight.to(x.dtype).reshape(h, dh, dim_in)
+        a = torch.bmm(pooled.transpose(0, 1), wv.transpose(1, 2)).transpose(0, 1)         # (B, h, dh)
+        o = q.reshape(1, 1, d) + a.reshape(b, 1, d)
+        return mab._feed_forward(o, 0.0)
 
 
 class CommunicationBlock(nn.Module):
@@ -260,6 +361,9 @@ class UPerHead(nn.Module):
 
     def forward(self, feats: list[torch.Tensor]) -> torch.Tensor:
         """feats: per-stage (B, in_channels[i], h_i, w_i) -> (B, channels, h_0, w_0)."""
+        if not _REFERENCE:
+            # channels-last convolutions: oneDNN's fast path, no layout conversions between the convs.
+            feats = [f.contiguous(memory_format=torch.channels_last) for f in feats]
         top = feats[-1]
         psp = [top] + [self._resize(m(top), top.shape[-2:]) for m in self.psp_modules]
         laterals = [conv(feats[i]) for i, conv in enumerate(self.lateral_convs)]
@@ -421,10 +525,36 @@ def gaussian_kernel_1d(size: int, sigma: float, dtype=torch.float64) -> torch.Te
 def gaussian_smooth(x: torch.Tensor, size: int, sigma: float) -> torch.Tensor:
     """Depthwise Gaussian smoothing with zero padding of size//2. x: (B, C, h, w) -> (B, C, h, w).
 
-    Done as two separable 1-D passes (mathematically identical to the published 2-D kernel, ~20x cheaper).
+    Separable (mathematically identical to the published 2-D kernel). Each 1-D pass is a product with a banded
+    (Toeplitz) matrix that holds the zero padding: two batched GEMMs, ~100x faster on CPU than a one-channel
+    convolution over B*C maps. In channels-last memory the result is channels-last too.
     """
     if size <= 1:
         return x
+    if _REFERENCE:
+        return _gaussian_smooth_conv(x, size, sigma)
+    b, c, h, w = x.shape
+    k = gaussian_kernel_1d(size, sigma)
+
+    def band(n: int) -> torch.Tensor:
+        # T[i, j] = k[j - i + size//2]: row i of T @ v is the zero-padded 1-D convolution of v at i.
+        i = torch.arange(n)
+        off = i[None, :] - i[:, None] + size // 2
+        t = torch.where((off >= 0) & (off < size), k[off.clamp(0, size - 1)], torch.zeros((), dtype=k.dtype))
+        return t.to(device=x.device, dtype=x.dtype)
+
+    th, tw = band(h), band(w)
+    if x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous():
+        y = x.permute(0, 2, 3, 1)                                                   # (B, h, w, C) contiguous
+        y = torch.matmul(th, y.reshape(b, h, w * c)).reshape(b * h, w, c)           # along rows
+        y = torch.matmul(tw, y).reshape(b, h, w, c)                                 # along columns
+        return y.permute(0, 3, 1, 2)
+    y = x.reshape(b * c * h, w) @ tw.t()                                            # along columns
+    return torch.matmul(th, y.reshape(b * c, h, w)).reshape(b, c, h, w)            # along rows
+
+
+def _gaussian_smooth_conv(x: torch.Tensor, size: int, sigma: float) -> torch.Tensor:
+    """Reference form of :func:`gaussian_smooth`: two one-channel 1-D convolutions over the B*C maps."""
     k = gaussian_kernel_1d(size, sigma).to(device=x.device, dtype=x.dtype)
     b, c, h, w = x.shape
     y = x.reshape(b * c, 1, h, w)
@@ -441,6 +571,14 @@ class SDMUniPS(nn.Module):
     H = W, a multiple of ``config.canonical_resolution``.
     """
 
+    #: Decoder parts that run in float32 at inference under autocast (bf16). Measured on the `paper` preset (512^2,
+    #: K=16, 3,000 pixels, deterministic "bench" weights; normals vs all-fp32): all bf16 0.66 deg mean; bf16 encoder
+    #: with an fp32 decoder 0.017 deg, so the decoder's rounding is what matters; glc_upsample in fp32 0.40 deg (+25%
+    #: decoder time), + the PMA pooling 0.34 deg (the PMA costs little since its K/V are reassociated);
+    #: glc_aggregation in fp32 0.43 deg (+50%), regressor or heads in fp32 no gain. Whole-image numbers:
+    #: benchmarks/bench_speed.py. Names: "glc_upsample", "glc_aggregation.pma".
+    fp32_under_autocast: tuple[str, ...] = ("glc_upsample", "glc_aggregation.pma")
+
     def __init__(self, config: SDMUniPSConfig):
         super().__init__()
         config.validate()
@@ -449,6 +587,7 @@ class SDMUniPS(nn.Module):
         self.glc_upsample = GLCUpsample(config)
         self.glc_aggregation = GLCAggregation(config)
         self.regressor = Regressor(config)
+        self.glc_aggregation.aggregation.dec[0].fp32_under_autocast = "glc_aggregation.pma" in self.fp32_under_autocast
         self._init_weights()
 
     # -------------------------------------------------------------------- init
@@ -557,11 +696,22 @@ class SDMUniPS(nn.Module):
             with _no_autocast(feats.device):
                 f = F.grid_sample(feats, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
             f = f.reshape(b, n, -1, mc).permute(0, 3, 1, 2).reshape(b * mc, n, -1)     # (B*mc, N, C)
-            x = self.glc_upsample(torch.cat([o, f.to(o.dtype)], dim=-1))              # (B*mc, N, Du)
-            x = self.glc_aggregation(torch.cat([o.to(x.dtype), x], dim=-1))           # (B*mc, Da)
+            x = self._stage("glc_upsample", torch.cat([o, f.to(o.dtype)], dim=-1))   # (B*mc, N, Du)
+            x = self._stage("glc_aggregation", torch.cat([o.to(x.dtype), x], dim=-1))  # (B*mc, Da)
             pooled.append(x.reshape(b, mc, -1))
         x = torch.cat(pooled, dim=1) if len(pooled) > 1 else pooled[0]
         return self.regressor(x, clamp=clamp)
+
+    def _stage(self, name: str, x: torch.Tensor) -> torch.Tensor:
+        """Run decoder stage ``name`` on x; at inference under autocast the stages in :attr:`fp32_under_autocast`
+        run in float32 (training keeps autocast everywhere)."""
+        module = getattr(self, name)
+        dev = x.device.type
+        if (not self.training and name in self.fp32_under_autocast and dev in ("cpu", "cuda")
+                and torch.is_autocast_enabled(dev)):
+            with torch.autocast(device_type=dev, enabled=False):
+                return module(x.float())
+        return module(x)
 
     def forward(self, images: torch.Tensor, mask: torch.Tensor, pixel_index: torch.Tensor, clamp: bool = True
                 ) -> dict[str, torch.Tensor]:
