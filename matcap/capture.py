@@ -356,9 +356,9 @@ def estimate(
 def _progress_callback(target: str, progress):
     if callable(progress):
         return lambda done, total: progress(target, done, total)
-    from tqdm import tqdm
+    from networks.progress import progress as progress_bar
 
-    bar = tqdm(total=None, desc=f"{target} network", unit="px", leave=False, dynamic_ncols=True)
+    bar = progress_bar(total=None, desc=f"{target} network", unit="px", leave=False)
 
     def cb(done: int, total: int) -> None:
         if bar.total != total:

@@ -441,9 +441,9 @@ def relight(
     images = []
     iterator = jobs
     if progress and len(jobs) > 1:
-        from tqdm import tqdm
+        from networks.progress import progress as progress_bar
 
-        iterator = tqdm(jobs, desc="relight", unit="render")
+        iterator = progress_bar(jobs, desc="relight", unit="render")
     for i, (name, lights, pixels) in enumerate(iterator):
         with warnings.catch_warnings():
             warnings.simplefilter("always")

@@ -13,7 +13,6 @@ import os
 import shutil
 import signal
 import socket
-import sys
 import threading
 import time
 from contextlib import contextmanager
@@ -376,9 +375,9 @@ def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str
         t0 = time.time()
         bar = None
         if progress:
-            from tqdm import tqdm
+            from networks.progress import progress as progress_bar
 
-            bar = tqdm(total=len(todo), desc=f"synth {split} shard {i}/{n}", unit="scene", file=sys.stderr)
+            bar = progress_bar(total=len(todo), desc=f"synth {split} shard {i}/{n}", unit="scene")
         try:
             for k in todo:
                 final = out / f"scene_{k:06d}"
