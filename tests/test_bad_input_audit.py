@@ -194,12 +194,12 @@ def test_eval_bad_options(diligent, tmp_path, capsys, extra, needle):
 def test_synth_params_json_that_is_not_an_object(tmp_path, capsys):
     (tmp_path / "d").mkdir()
     (tmp_path / "d" / "synth_params.json").write_text("[1]")
-    rc = run(["synth", "--out", str(tmp_path / "d"), "--scenes", "1", "--resolution", "8", "--no-progress"])
+    rc = run(["synth", "--out", str(tmp_path / "d"), "--scenes", "1", "--resolution", "8", "--quiet"])
     one_line_error(capsys, "synth_params.json: expected a JSON object, got a list", rc)
 
 
 def test_synth_refuses_to_mix_scenes_into_a_capture_result(result, capsys):
-    rc = run(["synth", "--out", str(result), "--scenes", "1", "--resolution", "8", "--no-progress"])
+    rc = run(["synth", "--out", str(result), "--scenes", "1", "--resolution", "8", "--quiet"])
     one_line_error(capsys, "not part of a `matcap synth` dataset", rc)
     assert not list(result.glob("scene_*")) and not (result / "synth_params.json").exists()
 
