@@ -634,11 +634,18 @@ def capture(
             "photo_size_wh": original_wh,  # image_size_wh differs from it after --max-side
         }
     )
-    write_result(maps, out, overwrite=overwrite)
-    for p in plans:  # the result folder is new: no earlier render to protect
-        relighting.render_plan(maps, p, out=out, overwrite=True)
-    if export_request is not None:
-        export_maps(maps, **export_request)
+
+    def relight_and_export(folder: Path) -> list[str]:
+        """Runs before the result folder is swapped into place: the renders are part of the atomic result, and
+        the export is done (itself atomically) before the result appears, so a run killed at any point leaves
+        either nothing or everything."""
+        for p in plans:
+            relighting.render_plan(maps, p, out=folder, overwrite=True)
+        if export_request is not None:
+            export_maps(maps, **export_request)
+        return [f"relight_{name}{suffix}" for p in plans for name in p.names for suffix in (".exr", ".png")]
+
+    write_result(maps, out, overwrite=overwrite, extra_files=relight_and_export)
     return maps, Path(out)
 
 

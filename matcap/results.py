@@ -13,7 +13,7 @@ from __future__ import annotations
 import contextlib
 import os
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 from matcap import formats
 from matcap.errors import MatcapError
@@ -66,10 +66,17 @@ def write_result(
     out_dir: str | os.PathLike,
     overwrite: bool = False,
     extra_json: dict[str, Any] | None = None,
+    extra_files: Callable[[Path], list[str]] | None = None,
 ) -> Path:
-    """Write a complete result folder atomically (see module docstring). Returns its path."""
+    """Write a complete result folder atomically (see module docstring). Returns its path.
+
+    ``extra_files(folder)``: writes more files into the folder before it is swapped into place (``matcap capture
+    --relight``'s renders), so that they are part of the atomic result; returns their names, which are listed
+    in ``capture.json``'s ``files`` with the maps'."""
     with output_dir(out_dir, overwrite) as tmp:
         files = formats.write_result_maps(maps, tmp)
+        if extra_files is not None:
+            files += list(extra_files(tmp))
         info = dict(maps.meta)
         info.update(extra_json or {})
         info["files"] = files + ["capture.json"]
