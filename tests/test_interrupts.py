@@ -137,17 +137,17 @@ def setup(tmp_path, tiny_weights):
 SIGNALS = {"INT": signal.SIGINT, "TERM": signal.SIGTERM, "KILL": signal.SIGKILL}
 
 
-@pytest.mark.parametrize("stage,patch,sig", [
-    ("networks", STOP_IN_NETWORKS, "INT"),
-    ("networks", STOP_IN_NETWORKS, "TERM"),
-    ("networks", STOP_IN_NETWORKS, "KILL"),
-    ("writing", STOP_WRITING_RESULT, "INT"),
-    ("writing", STOP_WRITING_RESULT, "TERM"),
-    pytest.param("writing", STOP_WRITING_RESULT, "KILL", marks=pytest.mark.slow),
-    pytest.param("relight", STOP_IN_RELIGHT, "TERM", marks=pytest.mark.slow),
+STOPS = {"networks": STOP_IN_NETWORKS, "writing": STOP_WRITING_RESULT, "relight": STOP_IN_RELIGHT}
+
+
+@pytest.mark.parametrize("stage,sig", [
+    ("networks", "INT"), ("networks", "TERM"), ("networks", "KILL"),
+    ("writing", "INT"), ("writing", "TERM"), ("writing", "KILL"),
+    ("relight", "TERM"),
 ])
-def test_capture_stopped_leaves_nothing_and_reruns(setup, stage, patch, sig):
+def test_capture_stopped_leaves_nothing_and_reruns(setup, stage, sig):
     work, argv = setup
+    patch = STOPS[stage]
     if stage == "relight":
         argv = [*argv, "--point", "0,0,3", "--spp", "1"]
     r = run_stopped(patch, argv, SIGNALS[sig], work)
@@ -167,7 +167,7 @@ def test_capture_stopped_leaves_nothing_and_reruns(setup, stage, patch, sig):
         assert {"relight_point_0_0_3.exr", "relight_point_0_0_3.png"} <= set(info["files"])
 
 
-@pytest.mark.parametrize("sig", ["INT", pytest.param("KILL", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("sig", ["INT", "KILL"])
 def test_capture_stopped_while_exporting(setup, sig):
     work, argv = setup
     argv = [*argv, "--export", "tex"]
@@ -186,7 +186,6 @@ def test_capture_stopped_while_exporting(setup, sig):
     assert all((tex / f["file"]).is_file() for f in files.values())
 
 
-@pytest.mark.slow
 def test_capture_overwrite_killed_between_its_renames_keeps_the_previous_result(setup):
     from scenes.atomic import recover_dir
 
@@ -205,7 +204,7 @@ def test_capture_overwrite_killed_between_its_renames_keeps_the_previous_result(
     assert json.loads((work / "result" / "capture.json").read_text())["seed"] == 3 and hidden(work) == []
 
 
-@pytest.mark.parametrize("sig", ["TERM", pytest.param("KILL", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("sig", ["TERM", "KILL"])
 def test_export_stopped_leaves_no_partial_texture_set(tmp_path, sphere_maps, sig):
     from matcap.results import write_result
 
@@ -242,7 +241,6 @@ def test_recover_files_finishes_a_complete_set_and_drops_an_incomplete_one(tmp_p
     assert sorted(p.name for p in tmp_path.iterdir()) == [mine.name, "mat_a.png", "mat_b.png"]
 
 
-@pytest.mark.slow
 def test_synth_killed_resumes_without_rerendering(tmp_path):
     out = tmp_path / "d"
     argv = ["synth", "--quiet", "--out", str(out), "--scenes", "4", "--resolution", "16", "--seed", "4",
