@@ -281,12 +281,16 @@ def to_linear_float(img: StoredImage, decode_srgb_8bit: bool = True) -> tuple[np
     """
     arr = img.pixels
     if arr.dtype == np.uint8:
-        x = arr.astype(np.float32) / 255.0
+        # a 256-entry table: the same values as decoding every pixel, without float64 temporaries several times
+        # the photo's size (a 12,000 x 9,000 photo: 1.3 GB float32 out, nothing more)
+        table = np.arange(256, dtype=np.float32) / np.float32(255.0)
         if decode_srgb_8bit:
-            return srgb_to_linear(x), "srgb-decoded"
-        return x, "linear"
+            return srgb_to_linear(table)[arr], "srgb-decoded"
+        return table[arr], "linear"
     if arr.dtype == np.uint16:
-        return arr.astype(np.float32) / 65535.0, "linear"
+        x = arr.astype(np.float32)
+        x /= np.float32(65535.0)
+        return x, "linear"
     check_finite(arr, img.path)
     return arr.astype(np.float32), "linear"
 

@@ -138,3 +138,16 @@ def test_max_side_and_max_images_bound_memory_while_reading(tmp_path, monkeypatc
     info = json.loads((out / "capture.json").read_text())
     assert info["photo_size_wh"] == [800, 600] and info["image_size_wh"] == [80, 60]
     assert info["inputs"] == cap.files and info["images_used"] == cap.picked
+
+
+def test_8bit_decoding_by_table_equals_decoding_every_pixel():
+    """8-bit photos are decoded through a 256-entry table (no float64 copies of a huge photo): same values."""
+    from matcap.imageio import StoredImage, srgb_to_linear, to_linear_float
+
+    a = np.random.default_rng(0).integers(0, 256, (50, 60, 3)).astype(np.uint8)
+    got, how = to_linear_float(StoredImage(a, "x.png"))
+    assert how == "srgb-decoded" and got.dtype == np.float32
+    np.testing.assert_array_equal(got, srgb_to_linear(a.astype(np.float32) / 255.0))
+    np.testing.assert_array_equal(to_linear_float(StoredImage(a, "x.png"), False)[0], a.astype(np.float32) / 255.0)
+    b = np.random.default_rng(1).integers(0, 65536, (5, 6, 3)).astype(np.uint16)
+    np.testing.assert_array_equal(to_linear_float(StoredImage(b, "y.png"))[0], b.astype(np.float32) / 65535.0)
