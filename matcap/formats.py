@@ -1,32 +1,16 @@
 """Every map file matcap writes or reads, in one table, and one loader for every kind of map source.
 
-The table (:data:`LAYOUTS`) lists, per layout, each file with what its channels hold, its bit depth, its colour
-space and (for normal maps) its normal convention. Every writer (:func:`write_result_maps`,
-:func:`write_scene_maps`, ``matcap.export``, ``matcap.gallery``, :func:`write_render`, the refinement outputs) and
-every reader (:func:`load_maps`) goes through it; ``docs/formats.md`` is the user's copy.
+:data:`LAYOUTS` lists per layout (``result``: a capture result folder; ``scene``: a synthetic scene, whose
+``basecolor.png`` is linear; ``export``: a ``matcap export`` texture set; ``glb``: the textures inside ``NAME.glb``;
+``gallery``: display copies) each file with what its channels hold, its bit depth, its colour space and its normal
+convention. Every writer (:func:`write_result_maps`, :func:`write_scene_maps`, :func:`write_file`,
+:func:`write_render`, :func:`write_json`, :func:`write_visual`; ``matcap.export``, ``matcap.gallery``) and every
+reader (:func:`load_maps`: result, scene, export, foreign texture set by :data:`FOREIGN_NAMES`, ``.glb``) goes
+through it; ``docs/formats.md`` is the user's copy.
 
-Layouts:
-
-* ``result``  -- a capture result folder (``matcap capture``): ``normal.exr`` (float32 camera space), ``normal.png``
-  (16-bit, (n + 1) / 2, black off-mask), ``mask.png``, ``basecolor.png`` (16-bit **sRGB**), ``roughness.png`` /
-  ``metallic.png`` (16-bit linear), ``height.exr``, ``capture.json``, the refinement outputs (``lights.json``,
-  ``fit.json``, ``residual.png``, ``light_variation.png``) and relight renders ``relight_<name>.exr/.png``.
-* ``scene``   -- a synthetic scene folder (``matcap synth``): ``000.png`` ... (16-bit linear photos), ``mask.png``,
-  ``normal.exr``, ``basecolor.png`` (16-bit **linear**: ground truth, not a display image), ``roughness.png``,
-  ``metallic.png``, ``spec.json``, ``lights.json``, ``data.npz``.
-* ``export``  -- an engine texture set (``matcap export``): ``NAME_basecolor.png`` (8-bit sRGB), ``NAME_normal.png``
-  (16-bit OpenGL tangent space), ``NAME_normal_dx.png`` (DirectX), packed ``NAME_orm.png`` / ``NAME_maskmap.png``,
-  ``NAME_height.exr``, ``NAME.json`` (describes the set: frame, files), ``NAME.glb``, ``NAME_mesh.ply``.
-* ``glb``     -- the textures inside ``NAME.glb`` (8-bit, glTF metallic-roughness).
-* ``gallery`` -- display copies of the maps in a gallery folder (8-bit).
-
-Foreign texture sets (Substance, Poly Haven, ambientCG, plain ``basecolor.png`` / ``normal_gl.png``) are
-recognised by file naming (:data:`FOREIGN_NAMES`).
-
-Normal conventions live here too (no import cycle between results / export / relight): camera space is x right,
-y up, z toward the camera; an exported flat sample's tangent frame (T, B, N) is the camera frame (``"camera"``)
-or fitted to the mean normal (``"fit"``); OpenGL (+Y, green up) and DirectX (-Y) encodings are (n + 1) / 2 with
-green flipped for DirectX.
+The normal conventions (:mod:`matcap.normals`, re-exported here: ``tangent_frame``, ``camera_to_tangent``,
+``encode_normal`` / ``decode_normal`` with ``"gl"`` / ``"dx"``) belong to this module too; results, export and
+relight take them from here.
 """
 from __future__ import annotations
 
@@ -41,104 +25,31 @@ import numpy as np
 
 from matcap import imageio
 from matcap.errors import MatcapError
+from matcap.normals import (  # noqa: F401  (part of this module's API)
+    FOLD_Z,
+    NORMAL_CONVENTIONS,
+    camera_to_tangent,
+    decode_normal,
+    encode_normal,
+    tangent_frame,
+    tangent_to_camera,
+)
 from scenes.atomic import write_json_atomic
 from scenes.materialmaps import MaterialMaps
-
-FOLD_Z = 1e-3
-NORMAL_CONVENTIONS = ("gl", "dx")
-
-
-# ------------------------------------------------------------------------------------------------ normal conventions
-def tangent_frame(normal: np.ndarray, mask: np.ndarray, frame: str = "camera") -> np.ndarray:
-    """3×3 matrix whose rows are T, B, N of the flat sample in camera space.
-
-    ``"camera"``: the identity (UV = image axes, U right, V up, N toward the camera). ``"fit"``: N = the mean normal
-    over ``mask`` (a sample photographed slightly obliquely), T = image x projected onto the sample plane,
-    B = N × T (identity when the mean normal is unusable)."""
-    if frame == "camera":
-        return np.eye(3)
-    if frame != "fit":
-        raise ValueError(f"unknown tangent frame {frame!r}; choose 'camera' or 'fit'")
-    n0 = np.asarray(normal, np.float64)[np.asarray(mask, bool)].sum(axis=0)
-    if not np.isfinite(n0).all() or np.linalg.norm(n0) < 1e-9 or n0[2] <= 0:
-        return np.eye(3)
-    n0 /= np.linalg.norm(n0)
-    t = np.array([1.0, 0.0, 0.0]) - n0[0] * n0
-    t /= np.linalg.norm(t)
-    return np.stack([t, np.cross(n0, t), n0])
-
-
-def camera_to_tangent(normal: np.ndarray, mask: np.ndarray, frame: str | np.ndarray = "camera") -> np.ndarray:
-    """Camera-space normals (H, W, 3) -> OpenGL tangent-space unit normals of the flat sample (z >= 1e-3: normals
-    facing away from the camera are folded to the horizon). Off-mask and zero normals become (0, 0, 1)."""
-    mask = np.asarray(mask, bool)
-    m = tangent_frame(normal, mask, frame) if isinstance(frame, str) else np.asarray(frame, np.float64)
-    n = np.nan_to_num(np.asarray(normal, np.float64)) @ m.T
-    length = np.linalg.norm(n, axis=2)
-    bad = ~mask | (length < 1e-6)
-    n = n / np.maximum(length, 1e-6)[..., None]
-    n[..., 2] = np.maximum(n[..., 2], FOLD_Z)
-    n /= np.linalg.norm(n, axis=2, keepdims=True)
-    n[bad] = (0.0, 0.0, 1.0)
-    return n.astype(np.float32)
-
-
-def tangent_to_camera(tangent: np.ndarray, mask: np.ndarray, frame: np.ndarray | None = None) -> np.ndarray:
-    """Inverse of :func:`camera_to_tangent` (up to folding): unit camera-space normals, 0 off-mask."""
-    m = np.eye(3) if frame is None else np.asarray(frame, np.float64)
-    n = np.asarray(tangent, np.float64) @ m
-    n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-8)
-    return np.where(np.asarray(mask, bool)[..., None], n, 0.0).astype(np.float32)
-
-
-def _check_convention(convention: str) -> None:
-    if convention not in NORMAL_CONVENTIONS:
-        raise ValueError(f"normal convention must be 'gl' or 'dx', got {convention!r}")
-
-
-def encode_normal(normal: np.ndarray, convention: str = "gl", mask: np.ndarray | None = None) -> np.ndarray:
-    """Unit normals (H, W, 3) -> (n + 1) / 2 in [0, 1].
-
-    ``"gl"`` keeps +Y up (OpenGL tangent space; camera-space normals use the same encoding); ``"dx"`` flips green
-    (G = 1 - G). With ``mask`` (H, W) bool, off-mask pixels are 0 (black), as in a result's ``normal.png``."""
-    _check_convention(convention)
-    enc = (np.asarray(normal, np.float32) + 1.0) * 0.5
-    if convention == "dx":
-        enc[..., 1] = 1.0 - enc[..., 1]
-    if mask is not None:
-        enc = np.where(np.asarray(mask, bool)[..., None], enc, 0.0)
-    return enc.astype(np.float32)
-
-
-def decode_normal(encoded: np.ndarray, convention: str = "gl", mask: np.ndarray | None = None) -> np.ndarray:
-    """Inverse of :func:`encode_normal`: unit vectors (renormalised); 0 off ``mask`` when given."""
-    _check_convention(convention)
-    n = np.asarray(encoded, np.float64) * 2.0 - 1.0
-    if convention == "dx":
-        n[..., 1] = -n[..., 1]
-    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
-    if mask is not None:
-        n = np.where(np.asarray(mask, bool)[..., None], n, 0.0)
-    return n.astype(np.float32)
-
 
 # ------------------------------------------------------------------------------------------------ the table
 @dataclass(frozen=True)
 class MapFile:
     """One file of a layout.
 
-    file: name in the folder; ``{name}`` is the export name, ``{render}`` a render's name, ``{index}`` a photo's.
-    channels: what each stored channel holds (1, 3 or 4), from ``base_color.r|g|b`` (linear in memory),
-        ``normal.x|y|z`` (see ``normal``), ``roughness``, ``smoothness`` (1 - roughness), ``metallic``,
-        ``occlusion``, ``height``, ``mask``, ``0``, ``1``, ``image.r|g|b``, ``radiance.r|g|b`` (linear renders),
-        ``display.r|g|b`` (already display-encoded), ``coverage``, ``residual``, ``light_variation``;
-        empty for files that are not images.
-    bits: 8 or 16 (PNG integers), 32 (float32 EXR), 0 (not an image: JSON, glb, PLY, npz).
-    colour: ``"sRGB"``: the ``base_color`` channels are sRGB-encoded on disk (decoded once when read; other
-        channels of such a file are display values written as given); ``"linear"``: values as they are
-        ("Non-Color"); ``""``: not an image.
-    normal: for normal maps, ``"camera"`` (camera space, black / 0 off-mask), ``"gl"`` (OpenGL tangent space, +Y)
-        or ``"dx"`` (DirectX tangent space, -Y); integer files store (n + 1) / 2, float files the vectors.
+    file: name; ``{name}`` = export name, ``{render}`` = render name, ``{index}`` = photo number.
+    channels: what each stored channel holds: ``base_color.r|g|b``, ``normal.x|y|z``, ``roughness``, ``smoothness``
+        (1 - roughness), ``metallic``, ``occlusion``, ``height``, ``mask``, ``0``, ``1``, ``image.*`` / ``radiance.*``
+        (linear), ``display.*`` (display-encoded: renders, visualisations), ``coverage``; () if not an image.
+    bits: 8 / 16 (PNG), 32 (float32 EXR), 0 (not an image: JSON, glb, PLY, npz).
+    colour: ``"sRGB"``: base colour channels are sRGB-encoded on disk (decoded once when read); ``"linear"``.
+    normal: ``"camera"`` (camera space, 0 off-mask), ``"gl"`` / ``"dx"`` (tangent space, +Y / -Y); integer files
+        store (n + 1) / 2, float files the vectors.
     """
 
     key: str
@@ -159,6 +70,7 @@ class MapFile:
 
 RGB_BASE = ("base_color.r", "base_color.g", "base_color.b")
 XYZ = ("normal.x", "normal.y", "normal.z")
+DISPLAY = ("display.r", "display.g", "display.b")
 
 
 def _table(*files: MapFile) -> dict[str, MapFile]:
@@ -168,15 +80,15 @@ def _table(*files: MapFile) -> dict[str, MapFile]:
 REFINE_FILES = (
     MapFile("lights", "lights.json", description="refinement: the fitted lights (JSON, write_json)"),
     MapFile("fit", "fit.json", description="refinement: fit settings and losses (JSON, write_json)"),
-    MapFile("residual", "residual.png", ("residual",), 8, "linear",
-            description="refinement: per-pixel residual, grey visualisation scaled to [0, 1] (not data)"),
-    MapFile("light_variation", "light_variation.png", ("light_variation",), 8, "linear",
-            description="refinement: how much the light varies per pixel, grey visualisation in [0, 1] (not data)"),
+    MapFile("residual", "residual.png", DISPLAY, 8, "sRGB",
+            description="refinement: per-pixel residual, 0 .. vmax blue -> red, background black (write_visual)"),
+    MapFile("light_variation", "light_variation.png", DISPLAY, 8, "sRGB",
+            description="refinement: how much the light varies per pixel, 0 .. vmax blue -> red (write_visual)"),
 )
 RENDER_FILES = (
     MapFile("render_exr", "relight_{render}.exr", ("radiance.r", "radiance.g", "radiance.b"), 32, "linear",
             description="relit render, linear radiance, black background"),
-    MapFile("render_png", "relight_{render}.png", ("display.r", "display.g", "display.b", "coverage"), 8, "sRGB",
+    MapFile("render_png", "relight_{render}.png", DISPLAY + ("coverage",), 8, "sRGB",
             description="relit render tone mapped to display sRGB; alpha = mask coverage (RGB where fully covered)"),
 )
 
@@ -254,10 +166,6 @@ LAYOUTS: dict[str, dict[str, MapFile]] = {
         MapFile("basecolor", "maps/basecolor.png", RGB_BASE, 8, "sRGB", description="display copy, black off-mask"),
         MapFile("roughness", "maps/roughness.png", ("roughness",), 8, "linear", description="display copy"),
         MapFile("metallic", "maps/metallic.png", ("metallic",), 8, "linear", description="display copy"),
-        MapFile("render_exr", "renders/{render}.exr", ("radiance.r", "radiance.g", "radiance.b"), 32, "linear",
-                description="render, linear radiance"),
-        MapFile("render_png", "renders/{render}.png", ("display.r", "display.g", "display.b", "coverage"), 8,
-                "sRGB", description="render tone mapped, alpha = coverage"),
     ),
 }
 
@@ -371,19 +279,21 @@ def write_json(path: str | os.PathLike, obj: Any) -> Path:
     return Path(path)
 
 
-def write_visual(folder: str | os.PathLike, key: str, values: np.ndarray, *, scale: float | None = None,
+def write_visual(folder: str | os.PathLike, key: str, values: np.ndarray, *, vmax: float,
                  layout: str = "result") -> Path:
-    """Write a grey visualisation file of the table (``residual.png``, ``light_variation.png``): (H, W) values
-    divided by ``scale`` (default: their 99th percentile, so a few outliers do not wash it out), clipped to [0, 1],
-    8-bit. Returns the path."""
+    """Write a visualisation file of the table (``residual.png``, ``light_variation.png``): (H, W) values, 0 ..
+    ``vmax`` mapped blue -> red (the error-map colours of ``matcap eval``), NaN = background (black), 8-bit RGB.
+    A picture for people, not data. Returns the path."""
+    from matcap.evaluation.metrics import colorize_error
+
     spec = LAYOUTS[layout][key]
-    v = np.nan_to_num(np.asarray(values, np.float32))
+    v = np.asarray(values, np.float64)
     if v.ndim != 2:
         raise ValueError(f"{spec.file}: expected (H, W) values, got {v.shape}")
-    if scale is None:
-        scale = float(np.percentile(v, 99)) if v.size else 1.0
-    v = v / scale if scale > 0 else np.zeros_like(v)
-    return write_file(folder, spec, {spec.channels[0]: np.clip(v, 0.0, 1.0)})
+    if not vmax > 0:
+        raise ValueError(f"{spec.file}: vmax must be positive, got {vmax}")
+    rgb = colorize_error(v, max_deg=vmax, background=0.0)
+    return write_file(folder, spec, {c: rgb[..., i] for i, c in enumerate(DISPLAY)})
 
 
 def write_result_maps(maps: MaterialMaps, folder: str | os.PathLike) -> list[str]:
@@ -436,16 +346,13 @@ def write_render(stem: str | os.PathLike, linear: np.ndarray, display: np.ndarra
 
 
 # ------------------------------------------------------------------------------------------------ decoding
-def _stored_float(stored: imageio.StoredImage) -> tuple[np.ndarray, bool]:
-    """(H, W, 3) float32 in [0, 1] for integer files (divided by 255 / 65535), values for float files; and whether
-    the file held integers."""
-    arr = stored.pixels
-    if arr.dtype == np.uint8:
-        return arr.astype(np.float32) / 255.0, True
-    if arr.dtype == np.uint16:
-        return arr.astype(np.float32) / 65535.0, True
-    imageio.check_finite(arr, stored.path)
-    return arr.astype(np.float32), False
+def _float_image(arr, path: str = "") -> np.ndarray:
+    """Integer images divided by 255 / 65535 (to [0, 1]); float images as they are (NaN / Inf refused)."""
+    arr = np.asarray(arr)
+    if arr.dtype.kind in "ui":
+        return arr.astype(np.float32) / float(np.iinfo(arr.dtype).max)
+    imageio.check_finite(arr, path)
+    return arr.astype(np.float32)
 
 
 def read_planes(path: str | os.PathLike, spec: MapFile) -> dict[str, np.ndarray]:
@@ -457,7 +364,7 @@ def read_planes(path: str | os.PathLike, spec: MapFile) -> dict[str, np.ndarray]
     vectors as stored). A single-channel spec reads the green channel (grey files repeat it; a roughness map
     packed as G of an RGB file still reads right)."""
     stored = imageio.read_image(path)
-    x, integer = _stored_float(stored)
+    x, integer = _float_image(stored.pixels, stored.path), stored.kind != "float"
     if spec.normal:
         if not integer and spec.normal == "camera":
             return {"normal": x}
@@ -553,7 +460,14 @@ def is_scene(folder: Path) -> bool:
 
 
 def is_result(folder: Path) -> bool:
-    return not is_scene(folder) and ((folder / "normal.exr").is_file() or (folder / "normal.png").is_file())
+    """A capture result folder: ``normal.exr``, or ``normal.png`` with ``mask.png`` or ``capture.json`` (a lone
+    ``normal.png`` beside ``basecolor.png`` is a plain texture set's OpenGL map)."""
+    if is_scene(folder):
+        return False
+    if (folder / "normal.exr").is_file():
+        return True
+    return (folder / "normal.png").is_file() and ((folder / "mask.png").is_file()
+                                                  or (folder / "capture.json").is_file())
 
 
 def read_export(json_path: str | os.PathLike) -> MaterialMaps:
@@ -684,15 +598,6 @@ def read_texture_set(folder: str | os.PathLike) -> MaterialMaps:
         meta={"source": str(folder), "kind": "texture set", "files": {k: v.name for k, v in files.items()},
               "normal_convention": "OpenGL tangent = camera space"},
     )
-
-
-def _float_image(img) -> np.ndarray:
-    arr = np.asarray(img)
-    if arr.dtype == np.uint8:
-        return arr.astype(np.float32) / 255.0
-    if arr.dtype == np.uint16:
-        return arr.astype(np.float32) / 65535.0
-    return arr.astype(np.float32)
 
 
 def read_glb(path: str | os.PathLike) -> MaterialMaps:

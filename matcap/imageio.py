@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from matcap.errors import MatcapError
-from scenes.atomic import (  # the one atomic-write helper, re-exported for matcap's writers
+from scenes.atomic import (  # noqa: F401  (the one atomic-write helper, re-exported for matcap's writers)
     atomic_path,
     json_text,
     write_bytes_atomic,

@@ -70,9 +70,10 @@ def write_result(
 ) -> Path:
     """Write a complete result folder atomically (see module docstring). Returns its path.
 
-    ``extra_files(folder)``: writes more files into the folder before it is swapped into place (``matcap capture
-    --relight``'s renders), so that they are part of the atomic result; returns their names, which are listed
-    in ``capture.json``'s ``files`` with the maps'."""
+    ``extra_files(tmp_folder) -> names`` writes more files into the folder before it is renamed into place (the
+    refinement outputs: rows of the ``result`` layout, written with ``formats.write_json`` /
+    ``formats.write_visual``; ``matcap capture --relight``'s renders); their names are listed in
+    ``capture.json``'s ``files`` with the maps'."""
     with output_dir(out_dir, overwrite) as tmp:
         files = formats.write_result_maps(maps, tmp)
         if extra_files is not None:

@@ -331,16 +331,27 @@ def test_atomic_writes_keep_the_old_file_and_give_usual_modes(tmp_path):
     assert (folder / "f").read_text() == "1" and sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "dir"]
 
 
-def test_refinement_visualisations_are_8_bit_grey_rows_of_the_table(tmp_path):
-    values = np.linspace(0, 2, 20, dtype=np.float32).reshape(4, 5)
-    path = formats.write_visual(tmp_path, "residual", values, scale=2.0)
+def test_refinement_outputs_are_rows_of_the_table(tmp_path, sphere_maps):
+    from matcap.evaluation.metrics import colorize_error
+
+    values = np.linspace(0, 1, 20).reshape(4, 5)
+    values[0, 0] = np.nan  # background
+    path = formats.write_visual(tmp_path, "residual", values, vmax=0.5)
     assert path.name == "residual.png"
-    codes = stored(path)
-    assert codes.ndim == 2 and codes.max() == 255
-    np.testing.assert_array_equal(codes, np.round(values / 2 * 255))
-    assert formats.write_visual(tmp_path, "light_variation", values).name == "light_variation.png"
-    formats.write_json(tmp_path / formats.LAYOUTS["result"]["lights"].file, {"lights": []})
-    assert json.loads((tmp_path / "lights.json").read_text()) == {"lights": []}
+    codes = stored(path)[..., ::-1]
+    assert codes.shape == (4, 5, 3) and (codes[0, 0] == 0).all()
+    np.testing.assert_array_equal(codes, np.round(colorize_error(values, max_deg=0.5) * 255))
+    assert (codes[-1, -1] == codes[2, 0]).all()  # clipped at vmax: 1.0 and ~0.53 both full red
+    assert formats.write_visual(tmp_path, "light_variation", values, vmax=1).name == "light_variation.png"
+    formats.write_json(tmp_path / formats.LAYOUTS["result"]["lights"].file, {"lights": [np.float32(1)]})
+    assert json.loads((tmp_path / "lights.json").read_text()) == {"lights": [1.0]}
+    # written inside a result folder before it is renamed into place, and listed in capture.json
+    res = write_result(sphere_maps(8), tmp_path / "res", extra_files=lambda tmp: [
+        formats.write_json(tmp / "fit.json", {"psnr": 30}).name,
+        formats.write_visual(tmp, "residual", np.zeros((8, 8)), vmax=1).name])
+    assert json.loads((res / "capture.json").read_text())["files"][-3:] == ["fit.json", "residual.png",
+                                                                             "capture.json"]
+    assert read_result(res).shape == (8, 8)
 
 
 # ------------------------------------------------------------------------------------------------ library chain
@@ -385,3 +396,16 @@ def test_library_capture_relights_and_exports_reading_the_env_map_once(tmp_path,
     assert (tmp_path / "tex" / "res_normal_dx.png").is_file()
     export(out, tmp_path / "again", preset="unreal")
     compare_sets(tmp_path / "tex", tmp_path / "again", "res")
+
+
+def test_plain_names_are_a_texture_set_not_a_result(tmp_path):
+    """basecolor.png + normal.png (no normal.exr, mask or capture.json) is a texture set whose normal is OpenGL."""
+    folder = tmp_path / "plain"
+    folder.mkdir()
+    imageio.write_png(folder / "basecolor.png", np.full((6, 6, 3), 0.5), bits=8)
+    imageio.write_png(folder / "normal.png", np.tile([0.5, 0.75, 1.0], (6, 6, 1)), bits=8)
+    assert formats.identify(folder) == ("texture set", folder)
+    maps = formats.load_maps(folder)
+    assert maps.mask.all() and maps.normal[0, 0, 1] > 0.4
+    imageio.write_png(folder / "mask.png", np.ones((6, 6)), bits=8)  # now laid out as a result (normal.png only)
+    assert formats.identify(folder) == ("result", folder)
