@@ -66,9 +66,10 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> 
     return mask
 
 
-# Peak memory of a capture, per pixel of one photo at working size: measured with /usr/bin/time -v on 16 photos of
-# 1024x768 (see docs/ci.md, "Huge inputs"): the decoded float32 stack, its normalised copy and the network's
-# tensors. A capture whose estimate exceeds MEMORY_FRACTION of the available memory is refused up front.
+# Peak memory of a capture, per pixel of one photo at working size, with a margin over what was measured (16
+# photos of 1024x768 peaked at ~45 B/px over a ~0.5 GB base; docs/ci.md, "Huge inputs"): the decoded float32
+# stack, its normalised copy and the network's tensors. A capture whose estimate exceeds MEMORY_FRACTION of the
+# available memory is refused up front.
 BYTES_PER_IMAGE_PIXEL = 60
 FIXED_BYTES = 1.5e9  # Python, torch, two small networks
 MEMORY_FRACTION = 0.8
