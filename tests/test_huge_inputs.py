@@ -151,3 +151,16 @@ def test_8bit_decoding_by_table_equals_decoding_every_pixel():
     np.testing.assert_array_equal(to_linear_float(StoredImage(a, "x.png"), False)[0], a.astype(np.float32) / 255.0)
     b = np.random.default_rng(1).integers(0, 65536, (5, 6, 3)).astype(np.uint16)
     np.testing.assert_array_equal(to_linear_float(StoredImage(b, "y.png"))[0], b.astype(np.float32) / 65535.0)
+
+
+@pytest.mark.parametrize("command", ["relight", "gallery"])
+def test_a_huge_render_size_is_refused_before_rendering(tmp_path, sphere_maps, capsys, command):
+    from matcap.cli import main
+    from matcap.results import write_result
+
+    write_result(sphere_maps(16), tmp_path / "result")
+    extra = ["--out", str(tmp_path / "g")] if command == "gallery" else []
+    assert main([command, str(tmp_path / "result"), "--size", "100000", "--quiet", *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "100000x100000 render is 10000 megapixels" in err[0] and "--size" in err[0]
+    assert not (tmp_path / "g").exists() and not list((tmp_path / "result").glob("relight_*"))
