@@ -84,3 +84,5 @@ def test_capture_relight_export_in_both_variants(mitsuba_variant, tiny_weights, 
     assert relit.shape == (24, 32, 3) and np.isfinite(relit).all() and relit.max() > 0
     assert (out / "relight_point_0_0_3.png").is_file()
     assert (tex / "result.glb").is_file() and (tex / "result_normal.png").is_file()
+    files = json.loads((out / "capture.json").read_text())["files"]  # the renders are part of the result
+    assert sorted(files) == sorted(p.name for p in out.iterdir()) and "relight_point_0_0_3.exr" in files
