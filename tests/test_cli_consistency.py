@@ -55,4 +55,10 @@ def test_capture_without_out_writes_into_the_current_folder(tmp_path, tiny_weigh
                         "--quiet"], capture_output=True, text=True, timeout=600, cwd=work)
     assert r.returncode == 0, r.stderr
     assert (work / "photos-matcap" / "normal.exr").is_file()
+    import os
+
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (work / "photos-matcap").stat().st_mode & 0o777 == 0o777 & ~umask  # like any new folder (was 0700)
+    assert (work / "photos-matcap" / "normal.exr").stat().st_mode & 0o777 == 0o666 & ~umask
     assert sorted(p.name for p in (tmp_path / "data").iterdir()) == ["photos"]  # nothing beside the photos
