@@ -46,6 +46,8 @@ class Capture:
     mask_file: str | None = None
     colour: str = "linear"
     skipped: list[str] = field(default_factory=list)
+    photo_size_wh: tuple[int, int] | None = None  # (W, H) of the photos as stored (before --max-side)
+    picked: list[int] = field(default_factory=list)  # indices of ``files`` among the folder's photos (--max-images)
 
 
 def _natural_key(name: str):
@@ -64,15 +66,115 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> 
     return mask
 
 
-def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = None, linear: bool = False) -> Capture:
-    """Read every photo of ``folder``; ``mask.*`` / ``*.mask.*`` is the mask unless ``mask`` names one.
+# Peak memory of a capture, per pixel of one photo at working size, with a margin over what was measured (16
+# photos of 1024x768 peaked at ~45 B/px over a ~0.5 GB base; docs/ci.md, "Huge inputs"): the decoded float32
+# stack, its normalised copy and the network's tensors. A capture whose estimate exceeds MEMORY_FRACTION of the
+# available memory is refused up front.
+BYTES_PER_IMAGE_PIXEL = 60
+FIXED_BYTES = 1.5e9  # Python, torch, two small networks
+MEMORY_FRACTION = 0.8
+
+
+def available_memory() -> int:
+    """Bytes this process may use: ``MATCAP_MEMORY_GB`` if set, else MemAvailable from /proc/meminfo, else the
+    physical memory (sysconf)."""
+    forced = os.environ.get("MATCAP_MEMORY_GB")
+    if forced:
+        try:
+            return int(float(forced) * 1e9)
+        except ValueError:
+            raise MatcapError(f"MATCAP_MEMORY_GB must be a number of gigabytes, got {forced!r}") from None
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 1 << 62  # unknown: no limit
+
+
+def memory_needed(n_images: int, size_hw: tuple[int, int], photo_hw: tuple[int, int] | None = None) -> int:
+    """Estimated peak bytes of capturing ``n_images`` photos at working size ``size_hw`` (after --max-side), when
+    each photo is decoded at ``photo_hw`` first (one at a time)."""
+    h, w = size_hw
+    ph, pw = photo_hw or size_hw
+    decode = ph * pw * 3 * (4 + 2) if (ph, pw) != (h, w) else 0  # one photo in float32 + as stored
+    return int(FIXED_BYTES + n_images * h * w * BYTES_PER_IMAGE_PIXEL + decode)
+
+
+def _gb(n: float) -> str:
+    return f"{n / 1e9:.1f}" if n < 1e10 else f"{n / 1e9:.0f}"
+
+
+def check_memory(n_images: int, size_hw: tuple[int, int], photo_hw: tuple[int, int] | None = None,
+                 total_images: int | None = None) -> None:
+    """Refuse (one-line :class:`MatcapError`) a capture that would not fit in memory, naming the options that
+    make it fit: ``--max-side`` (photos shrunk as they are read) and ``--max-images``."""
+    need, have = memory_needed(n_images, size_hw, photo_hw), available_memory()
+    if need <= MEMORY_FRACTION * have:
+        return
+    h, w = size_hw
+    ph, pw = photo_hw or size_hw
+    budget = MEMORY_FRACTION * have - FIXED_BYTES - ph * pw * 3 * (4 + 2)  # minus decoding one photo at full size
+    per_image = max(budget, 0) / max(n_images, 1) / BYTES_PER_IMAGE_PIXEL  # pixels per image that would fit
+    side = int(max(w, h) * min(1.0, (per_image / (h * w)) ** 0.5)) // 64 * 64
+    fits_k = int(max(budget, 0) // (h * w * BYTES_PER_IMAGE_PIXEL))
+    hints = []
+    if side >= 64:
+        hints.append(f"--max-side {side}")
+    if fits_k >= 2:
+        hints.append(f"--max-images {min(fits_k, 16)}")
+    hint = " or ".join(hints) if hints else "--max-side 1024 --max-images 16"
+    raise MatcapError(
+        f"{total_images or n_images} photos of {pw}x{ph} would need about {_gb(need)} GB of memory, more than "
+        f"the {_gb(MEMORY_FRACTION * have)} GB that can be spared here; use {hint}"
+    )
+
+
+def _fit_side(size_hw: tuple[int, int], max_side: int | None) -> tuple[int, int]:
+    """(H, W) shrunk so that the longer side is at most ``max_side`` (as :func:`downscale_arrays` does)."""
+    h, w = size_hw
+    if max_side is None or max(h, w) <= max_side:
+        return h, w
+    s = max_side / max(h, w)
+    return max(1, round(h * s)), max(1, round(w * s))
+
+
+def _shrink(image: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    return cv2.resize(image, size_wh, interpolation=cv2.INTER_AREA)
+
+
+def pick_images(n: int, max_images: int | None, seed: int) -> np.ndarray:
+    """Indices of the photos a capture uses: all, or ``max_images`` of them drawn with ``seed`` (sorted)."""
+    if max_images is None or max_images >= n:
+        return np.arange(n)
+    if max_images < 2:
+        raise MatcapError(f"--max-images must be at least 2, got {max_images}")
+    return np.sort(np.random.default_rng(seed).choice(n, size=max_images, replace=False))
+
+
+def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = None, linear: bool = False,
+                 max_side: int | None = None, max_images: int | None = None, seed: int = 0) -> Capture:
+    """Read the photos of ``folder``; ``mask.*`` / ``*.mask.*`` is the mask unless ``mask`` names one.
 
     8-bit images are decoded from sRGB unless ``linear``; 16-bit and float images are taken as linear.
+    ``max_side``: each photo is shrunk as soon as it is read (area average in linear light) so that its longer
+    side is at most that; ``max_images``: only that many photos, drawn with ``seed`` (:func:`pick_images`), are
+    read. Sizes come from the files' headers first, so mixed sizes and a capture too large for the memory
+    (:func:`check_memory`) are refused before anything is decoded.
     Raises :class:`MatcapError` for no/one image, mixed sizes, unreadable files, NaN/Inf, a mask of another size.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise MatcapError(f"{folder}: not a folder of images")
+    if max_side is not None:
+        check_max_side(max_side)
     photos, skipped, found_mask = [], [], None
     for p in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name)):
         if not p.is_file() or p.suffix.lower() not in imageio.IMAGE_SUFFIXES or p.name.startswith("."):
@@ -89,16 +191,33 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
         raise MatcapError(f"{folder}: no images found (PNG, JPEG, TIFF, EXR or HDR)")
     if len(photos) < 2:
         raise MatcapError(f"{folder}: only one image ({photos[0].name}); photometric stereo needs at least 2 lights")
+    headers = [(p.name, imageio.image_size(p)) for p in photos]
+    if all(hw is not None for _, hw in headers):  # every header read: check sizes and memory before decoding
+        photo_hw = imageio.check_same_size(headers)
+        picked = pick_images(len(photos), max_images, seed)
+        work_hw = _fit_side(photo_hw, max_side)
+        check_memory(len(picked), work_hw, photo_hw, total_images=len(photos))
+    else:
+        picked = pick_images(len(photos), max_images, seed)
+    photos = [photos[i] for i in picked]
     images, kinds, sizes = [], set(), []
     for p in photos:
         stored = imageio.read_image(p)
         sizes.append((p.name, stored.pixels.shape[:2]))
         arr, how = imageio.to_linear_float(stored, decode_srgb_8bit=not linear)
         kinds.add(f"{stored.kind}:{how}")
+        del stored
+        work_hw = _fit_side(arr.shape[:2], max_side)
+        if work_hw != arr.shape[:2]:
+            arr = _shrink(arr, (work_hw[1], work_hw[0]))
         images.append(arr)
     size = imageio.check_same_size(sizes)
     mask_path = Path(mask) if mask is not None else found_mask
     mask_arr = read_mask(mask_path, size) if mask_path is not None else None
+    if mask_arr is not None and max_side is not None and images[0].shape[:2] != size:
+        mask_arr = _shrink(mask_arr.astype(np.float32), images[0].shape[1::-1]) > 0.5
+        if not mask_arr.any():
+            raise MatcapError(f"the mask vanishes at --max-side {max_side}; use a larger value")
     if mask_arr is not None and not mask_arr.any():
         raise MatcapError(f"{mask_path}: the mask is empty")
     colour = ", ".join(
@@ -112,7 +231,8 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
             for k in kinds
         )
     )
-    return Capture(images, [p.name for p in photos], mask_arr, str(mask_path) if mask_path else None, colour, skipped)
+    return Capture(images, [p.name for p in photos], mask_arr, str(mask_path) if mask_path else None, colour, skipped,
+                   photo_size_wh=(size[1], size[0]), picked=[int(i) for i in picked])
 
 
 # ------------------------------------------------------------------------------------------- models
@@ -356,9 +476,9 @@ def estimate(
 def _progress_callback(target: str, progress):
     if callable(progress):
         return lambda done, total: progress(target, done, total)
-    from tqdm import tqdm
+    from networks.progress import progress as progress_bar
 
-    bar = tqdm(total=None, desc=f"{target} network", unit="px", leave=False, dynamic_ncols=True)
+    bar = progress_bar(total=None, desc=f"{target} network", unit="px", leave=False)
 
     def cb(done: int, total: int) -> None:
         if bar.total != total:
@@ -495,12 +615,14 @@ def capture(
     export_request = _export_request(export, Path(out), overwrite)
     if export_request is not None:
         check_options(**export_request)
-    cap = load_capture(folder, mask=mask, linear=linear)
-    original_wh = [cap.images[0].shape[1], cap.images[0].shape[0]]
-    if max_side is not None:
-        cap = downscale(cap, max_side)
+    # --max-side and --max-images act while reading: photos are shrunk one by one and unused ones never decoded
+    max_images = estimate_kwargs.pop("max_images", None)
+    cap = load_capture(folder, mask=mask, linear=linear, max_side=max_side, max_images=max_images,
+                       seed=estimate_kwargs.get("seed", 0))
+    original_wh = list(cap.photo_size_wh)
     maps = estimate(cap.images, cap.mask, **estimate_kwargs).with_constants(constants)
     used = [cap.files[i] for i in maps.meta["images_used"]]
+    maps.meta["images_used"] = [cap.picked[i] for i in maps.meta["images_used"]]  # indices among all the photos
     maps.meta.update(
         {
             "tool": "matcap capture",
@@ -513,11 +635,18 @@ def capture(
             "photo_size_wh": original_wh,  # image_size_wh differs from it after --max-side
         }
     )
-    write_result(maps, out, overwrite=overwrite)
-    for p in plans:  # the result folder is new: no earlier render to protect
-        relighting.render_plan(maps, p, out=out, overwrite=True)
-    if export_request is not None:
-        export_maps(maps, **export_request)
+
+    def relight_and_export(folder: Path) -> list[str]:
+        """Runs before the result folder is swapped into place: the renders are part of the atomic result, and
+        the export is done (itself atomically) before the result appears, so a run killed at any point leaves
+        either nothing or everything."""
+        for p in plans:
+            relighting.render_plan(maps, p, out=folder, overwrite=True)
+        if export_request is not None:
+            export_maps(maps, **export_request)
+        return [f"relight_{name}{suffix}" for p in plans for name in p.names for suffix in (".exr", ".png")]
+
+    write_result(maps, out, overwrite=overwrite, extra_files=relight_and_export)
     return maps, Path(out)
 
 

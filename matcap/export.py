@@ -33,6 +33,7 @@ import numpy as np
 
 from matcap import formats, imageio
 from matcap.errors import MatcapError
+from scenes.atomic import atomic_files, recover_files
 from matcap.formats import (  # noqa: F401  (the normal conventions, kept importable from here)
     NORMAL_CONVENTIONS,
     camera_to_tangent,
@@ -285,64 +286,66 @@ def export(
     for key, wanted in (("height", height), ("mesh", mesh), ("glb", glb), ("json", True)):
         if wanted:
             paths[key] = TEXTURES[key].path(out, name=name)
+    recover_files(out, name)  # a staging folder of a killed run: finished if complete, else removed
     existing = [str(p) for p in paths.values() if p.exists()]
     if existing and not overwrite:
         raise MatcapError(f"{existing[0]} already exists ({len(existing)} file(s) of this export); "
                           "pass --overwrite to replace them")
-    out.mkdir(parents=True, exist_ok=True)
+    # every file is written into a hidden staging folder inside `out` and moved into place when the set is
+    # complete: a run killed part-way leaves no partial texture set (and the next run tidies its staging folder)
+    with atomic_files(out, tag=name, last=paths["json"].name) as stage:
+        files: dict[str, dict[str, Any]] = {}
+        for tex in written_tex:
+            formats.write_file(stage, tex, src, name=name)
+            files[tex.key] = {
+                "file": paths[tex.key].name, "channels": _channel_names(tex), "bits": tex.bits,
+                "colorspace": tex.colour, "description": tex.description,
+            }
+        height_info = None
+        if height:
+            src["height"] = hmap
+            formats.write_file(stage, TEXTURES["height"], src, name=name)
+            height_info = {"method": how, "range": [float(hmap[maps.mask].min()), float(hmap[maps.mask].max())]}
+            files["height"] = {
+                "file": paths["height"].name, "channels": ["Y"], "bits": 32, "colorspace": "linear",
+                "description": f"{TEXTURES['height'].description}; {how}",
+            }
+            if mesh:
+                surface = height_mesh(hmap, maps.mask, maps.base_color)
+                with imageio.atomic_path(stage / paths["mesh"].name) as tmp:
+                    surface.export(tmp, file_type="ply")
+                files["mesh"] = {"file": paths["mesh"].name, "description": TEXTURES["mesh"].description}
+        if glb:
+            imageio.write_bytes_atomic(stage / paths["glb"].name, build_glb(maps, src, missing, name, occlusion))
+            files["glb"] = {"file": paths["glb"].name, "description": TEXTURES["glb"].description}
 
-    files: dict[str, dict[str, Any]] = {}
-    for tex in written_tex:
-        formats.write_file(out, tex, src, name=name)
-        files[tex.key] = {
-            "file": paths[tex.key].name, "channels": _channel_names(tex), "bits": tex.bits,
-            "colorspace": tex.colour, "description": tex.description,
+        h, w = maps.shape
+        info = {
+            "matcap_export": FORMAT_VERSION,
+            "name": name,
+            "resolution": {"width": w, "height": h},
+            "preset": {"name": spec.name, "notes": spec.notes,
+                       "slots": {k: {"file": f"{name}_{v[0]}.png" if v[0] != "height" else f"{name}_height.exr",
+                                     "channels": v[1], "setting": v[2]} for k, v in spec.slots.items()}},
+            "normal_convention": {"gl": "OpenGL (+Y, green up)", "dx": "DirectX (-Y, green down)"}[normal],
+            "conventions": {
+                "tangent_space": "flat sample, UV = image axes: U right, V up (image row 0 = V 1); T = +U, B = +V, N out "
+                                 "of the surface; NAME_normal.png is OpenGL (+Y), NAME_normal_dx.png has G = 1 - G",
+                "tangent_frame": {"kind": frame, "rows_T_B_N_in_camera_space": np.round(m, 8).tolist()},
+                "normal_encoding": "(n + 1) / 2 per channel; off-mask texels are flat (0.5, 0.5, 1)",
+                "colour": "basecolor sRGB-encoded (IEC 61966-2-1); all other maps linear (Non-Color)",
+                "height_units": "pixels along +N",
+            },
+            "files": files,
+            "missing": missing,
+            "filled": filled,
+            "defaults": {k: list(v) if isinstance(v, tuple) else v for k, v in DEFAULTS.items()},
+            "height": height_info,
+            "occlusion": occlusion_info,
+            "model": provenance(maps.meta),
+            "constant_maps": dict(maps.meta.get("constant_maps") or {}),  # maps set by hand (--constant)
         }
-    height_info = None
-    if height:
-        src["height"] = hmap
-        formats.write_file(out, TEXTURES["height"], src, name=name)
-        height_info = {"method": how, "range": [float(hmap[maps.mask].min()), float(hmap[maps.mask].max())]}
-        files["height"] = {
-            "file": paths["height"].name, "channels": ["Y"], "bits": 32, "colorspace": "linear",
-            "description": f"{TEXTURES['height'].description}; {how}",
-        }
-        if mesh:
-            surface = height_mesh(hmap, maps.mask, maps.base_color)
-            with imageio.atomic_path(paths["mesh"]) as tmp:
-                surface.export(tmp, file_type="ply")
-            files["mesh"] = {"file": paths["mesh"].name, "description": TEXTURES["mesh"].description}
-    if glb:
-        imageio.write_bytes_atomic(paths["glb"], build_glb(maps, src, missing, name, occlusion))
-        files["glb"] = {"file": paths["glb"].name, "description": TEXTURES["glb"].description}
-
-    h, w = maps.shape
-    info = {
-        "matcap_export": FORMAT_VERSION,
-        "name": name,
-        "resolution": {"width": w, "height": h},
-        "preset": {"name": spec.name, "notes": spec.notes,
-                   "slots": {k: {"file": f"{name}_{v[0]}.png" if v[0] != "height" else f"{name}_height.exr",
-                                 "channels": v[1], "setting": v[2]} for k, v in spec.slots.items()}},
-        "normal_convention": {"gl": "OpenGL (+Y, green up)", "dx": "DirectX (-Y, green down)"}[normal],
-        "conventions": {
-            "tangent_space": "flat sample, UV = image axes: U right, V up (image row 0 = V 1); T = +U, B = +V, N out "
-                             "of the surface; NAME_normal.png is OpenGL (+Y), NAME_normal_dx.png has G = 1 - G",
-            "tangent_frame": {"kind": frame, "rows_T_B_N_in_camera_space": np.round(m, 8).tolist()},
-            "normal_encoding": "(n + 1) / 2 per channel; off-mask texels are flat (0.5, 0.5, 1)",
-            "colour": "basecolor sRGB-encoded (IEC 61966-2-1); all other maps linear (Non-Color)",
-            "height_units": "pixels along +N",
-        },
-        "files": files,
-        "missing": missing,
-        "filled": filled,
-        "defaults": {k: list(v) if isinstance(v, tuple) else v for k, v in DEFAULTS.items()},
-        "height": height_info,
-        "occlusion": occlusion_info,
-        "model": provenance(maps.meta),
-        "constant_maps": dict(maps.meta.get("constant_maps") or {}),  # maps set by hand (--constant)
-    }
-    formats.write_json(paths["json"], info)
+        formats.write_json(stage / paths["json"].name, info)
     return {k: str(p) for k, p in paths.items()}
 
 

@@ -255,9 +255,8 @@ def gallery(
     spp: samples per pixel for the environment renders (default ``renderers.relight.DEFAULT_SPP``);
     orbit_spp: for the orbit frames (point/directional light: noise-free, spp only anti-aliases).
     """
-    from tqdm import tqdm
-
     from matcap.results import check_not_replacing_inputs, output_dir
+    from networks.progress import progress as progress_bar
     from renderers.relight import DEFAULT_SPP, mask_coverage, render
 
     t0 = time.perf_counter()
@@ -295,7 +294,7 @@ def gallery(
         (tmp / "renders").mkdir()
         renders, tiles = [], []
         t = time.perf_counter()
-        for name, lights, pixels in tqdm(jobs, desc="environment renders", unit="render", disable=not progress):
+        for name, lights, pixels in progress_bar(jobs, desc="environment renders", unit="render", enabled=progress):
             img = render(maps, lights, pixels, spp=spp, size=(width, height), seed=seed)
             write_render(tmp / "renders" / name, img, coverage, tonemap_mode)
             tiles.append(_composite(tonemap(img / np.maximum(coverage[..., None], 1e-3), tonemap_mode), coverage))
@@ -309,7 +308,7 @@ def gallery(
         if orbit > 0:
             frames = []
             lights = orbit_lights(orbit, orbit_light, elevation, gain=2.0 ** exposure)
-            for light in tqdm(lights, desc="orbit frames", unit="frame", disable=not progress):
+            for light in progress_bar(lights, desc="orbit frames", unit="frame", enabled=progress):
                 img = render(maps, [light], None, spp=orbit_spp, size=(width, height), seed=seed)
                 frames.append(_composite(tonemap(img / np.maximum(coverage[..., None], 1e-3), tonemap_mode),
                                          coverage))

@@ -149,20 +149,30 @@ def parse_size(value) -> tuple[int, int] | None:
     return nums[0], nums[1]
 
 
+# Renders larger than this are refused before Mitsuba allocates their film (a typo such as --size 100000 would
+# otherwise end in an out-of-memory kill): 8192 x 8192, the largest texture size engines commonly use.
+MAX_RENDER_PIXELS = 8192 * 8192
+
+
 def fit_size(maps: MaterialMaps, size) -> tuple[int, int]:
-    """The render size: ``size`` (W, H), or a single number = the longer side (aspect kept); None: maps' size."""
+    """The render size: ``size`` (W, H), or a single number = the longer side (aspect kept); None: maps' size.
+    At most :data:`MAX_RENDER_PIXELS`."""
     h, w = maps.shape
     if size is None:
-        return w, h
-    if isinstance(size, int) or (isinstance(size, str) and size.strip().isdigit()):
+        width, height = w, h
+    elif isinstance(size, int) or (isinstance(size, str) and size.strip().isdigit()):
         side = int(size)
         if side < 1:
             raise MatcapError(f"size must be positive, got {size!r}")
         s = side / max(h, w)
-        return max(1, round(w * s)), max(1, round(h * s))
-    width, height = parse_size(size)
-    if abs(width / height - w / h) > 0.02 * (w / h):
-        raise MatcapError(f"size {width}x{height} does not keep the maps' aspect ratio {w}x{h}")
+        width, height = max(1, round(w * s)), max(1, round(h * s))
+    else:
+        width, height = parse_size(size)
+        if abs(width / height - w / h) > 0.02 * (w / h):
+            raise MatcapError(f"size {width}x{height} does not keep the maps' aspect ratio {w}x{h}")
+    if width * height > MAX_RENDER_PIXELS:
+        raise MatcapError(f"a {width}x{height} render is {width * height / 1e6:.0f} megapixels; the most is "
+                          f"{MAX_RENDER_PIXELS / 1e6:.0f} (8192x8192): pass a smaller --size")
     return width, height
 
 
@@ -328,9 +338,9 @@ def render_plan(maps: MaterialMaps, how: RelightPlan, *, out=None, overwrite: bo
     images = []
     iterator = how.jobs
     if progress and len(how.jobs) > 1:
-        from tqdm import tqdm
+        from networks.progress import progress as progress_bar
 
-        iterator = tqdm(how.jobs, desc="relight", unit="render")
+        iterator = progress_bar(how.jobs, desc="relight", unit="render")
     for i, (name, lights, pixels) in enumerate(iterator):
         with warnings.catch_warnings():
             warnings.simplefilter("always")

@@ -72,11 +72,12 @@ def write_result(
 
     ``extra_files(tmp_folder) -> names`` writes more files into the folder before it is renamed into place (the
     refinement outputs: rows of the ``result`` layout, written with ``formats.write_json`` /
-    ``formats.write_visual``)."""
+    ``formats.write_visual``; ``matcap capture --relight``'s renders); their names are listed in
+    ``capture.json``'s ``files`` with the maps'."""
     with output_dir(out_dir, overwrite) as tmp:
         files = formats.write_result_maps(maps, tmp)
         if extra_files is not None:
-            files += extra_files(tmp)
+            files += list(extra_files(tmp))
         info = dict(maps.meta)
         info.update(extra_json or {})
         info["files"] = files + ["capture.json"]

@@ -13,7 +13,6 @@ import os
 import shutil
 import signal
 import socket
-import sys
 import threading
 import time
 from contextlib import contextmanager
@@ -329,6 +328,18 @@ def _term_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
+def _remove_stale_tmp(out: Path) -> list[str]:
+    """Delete the ``.tmp-scene_*-PID`` folders of processes that no longer run (a run killed with ``kill -9``
+    while writing a scene); those of running processes (other shards) are left alone. Returns the names."""
+    removed = []
+    for entry in out.glob(".tmp-scene_*-*"):
+        pid = entry.name.rsplit("-", 1)[1]
+        if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+            shutil.rmtree(entry, ignore_errors=True)
+            removed.append(entry.name)
+    return removed
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -366,6 +377,7 @@ def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str
                                                "textures": len(catalog.textures)}
     _check_params(out, _params(split, resolution, seed, scenes, spp, assets_used))
     with _term_as_interrupt(), ShardLock(out, i, n):  # one process per shard
+        _remove_stale_tmp(out)
         cache = AssetCache(assets)
         todo = [k for k in range(i, scenes, n) if not (out / f"scene_{k:06d}" / "spec.json").exists()]
         skipped = len(range(i, scenes, n)) - len(todo)
@@ -373,9 +385,9 @@ def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str
         t0 = time.time()
         bar = None
         if progress:
-            from tqdm import tqdm
+            from networks.progress import progress as progress_bar
 
-            bar = tqdm(total=len(todo), desc=f"synth {split} shard {i}/{n}", unit="scene", file=sys.stderr)
+            bar = progress_bar(total=len(todo), desc=f"synth {split} shard {i}/{n}", unit="scene")
         try:
             for k in todo:
                 final = out / f"scene_{k:06d}"

@@ -48,7 +48,8 @@ class SampleSpec:
     """How training samples are drawn (all fields documented; defaults follow the paper where it says)."""
 
     resolution: int = 256
-    """Side of the square training crop fed to the network."""
+    """Side of the square training crop fed to the network (256 as in the paper; on a CPU use 128 with
+    --canonical-resolution 128, as the bundled models were trained: docs/training.md)."""
     min_images: int = 3
     """Fewest images per sample (K is drawn uniformly in [min_images, max_images])."""
     max_images: int = 6

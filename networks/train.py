@@ -372,9 +372,9 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
 
     bar = None
     if progress and rank == 0:
-        from tqdm import tqdm
+        from networks.progress import progress as progress_bar
 
-        bar = tqdm(total=tc.steps, initial=start, desc=f"train {tc.target}/{tc.preset}", unit="step", dynamic_ncols=True)
+        bar = progress_bar(total=tc.steps, initial=start, desc=f"train {tc.target}/{tc.preset}", unit="step")
     t_start = time.perf_counter()
     last_ckpt = last_val = t_start
     autocast = torch.autocast(device.type, dtype=torch.bfloat16) if tc.bf16 else None

@@ -51,7 +51,8 @@ class TrainConfig:
     sits below zero still gets a gradient (the ReLU of an unclamped prediction is what inference returns). The
     BRDF terms in the training log are then those of the linear outputs; validation always scores the ReLU."""
     canonical_resolution: int = 0
-    """Encoder canonical resolution (0 = that of the ``--init`` weights, else the preset's). CPU runs use 128."""
+    """Encoder canonical resolution (0 = that of the ``--init`` weights, else the preset's: 256, tiny 32).
+    The bundled CPU-trained models use 128 (with --resolution 128)."""
     dropout: float = -1.0
     """Attention dropout (< 0 = that of the ``--init`` weights, else the preset's 0.1)."""
     sample: SampleSpec = field(default_factory=SampleSpec)
@@ -145,7 +146,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     flag("device")
     flag("bf16", action="store_true")
     p.add_argument("--save-all-ranks", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
 def check_config(tc: TrainConfig) -> None:

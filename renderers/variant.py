@@ -21,10 +21,24 @@ print(float(mi.TensorXf(img).numpy().mean()))
 """
 
 _chosen: str | None = None
+_llvm_ok: bool | None = None
+VARIANTS = ("llvm_ad_rgb", "scalar_rgb")
+
+
+def llvm_works() -> bool:
+    """Whether ``llvm_ad_rgb`` renders in this environment (probed once per process, in a child process)."""
+    global _llvm_ok
+    if _llvm_ok is None:
+        try:
+            _llvm_ok = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, timeout=120).returncode == 0
+        except (subprocess.TimeoutExpired, OSError):
+            _llvm_ok = False
+    return _llvm_ok
 
 
 def choose_variant(prefer: str | None = None, quiet: bool = False) -> str:
-    """Set and return the Mitsuba variant. ``MATCAP_MITSUBA_VARIANT`` or ``prefer`` force one."""
+    """Set and return the Mitsuba variant. ``prefer`` or the environment variable ``MATCAP_MITSUBA_VARIANT``
+    (``llvm_ad_rgb`` or ``scalar_rgb``) force one; otherwise ``llvm_ad_rgb`` where it works, else ``scalar_rgb``."""
     global _chosen
     import mitsuba as mi
 
@@ -32,13 +46,13 @@ def choose_variant(prefer: str | None = None, quiet: bool = False) -> str:
         return _chosen
     forced = prefer or os.environ.get("MATCAP_MITSUBA_VARIANT")
     if forced:
+        if forced not in mi.variants():
+            raise ValueError(f"MATCAP_MITSUBA_VARIANT={forced!r} is not a Mitsuba variant here "
+                             f"(available: {', '.join(mi.variants())})")
         mi.set_variant(forced)
         _chosen = forced
         return forced
-    try:
-        ok = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, timeout=120).returncode == 0
-    except (subprocess.TimeoutExpired, OSError):
-        ok = False
+    ok = llvm_works()
     _chosen = "llvm_ad_rgb" if ok else "scalar_rgb"
     if not ok and not quiet:
         warnings.warn(

@@ -87,14 +87,65 @@ def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int | None = 2)
     write_text_atomic(path, json_text(obj, indent))
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # someone else's process (or cannot tell): leave its files alone
+    return True
+
+
+def _dead_owner(entry: Path, marker: str) -> bool:
+    """Whether ``entry`` (named ``...{marker}{pid}-...`` or ``...{marker}{pid}``) belongs to a process that no
+    longer runs, i.e. one killed before it could clean up (``kill -9``, a power cut)."""
+    rest = entry.name.split(marker, 1)[1] if marker in entry.name else ""
+    digits = rest.split("-", 1)[0]
+    return digits.isdigit() and int(digits) != os.getpid() and not _pid_alive(int(digits))
+
+
+def recover_dir(path: str | os.PathLike) -> list[str]:
+    """Tidy what an :func:`atomic_dir` for ``path`` killed part-way left beside it: temporary folders of dead
+    processes are deleted; a previous ``path`` that was moved aside (``.NAME.old-PID``) when the run was killed
+    between its two renames is put back if ``path`` is missing, else deleted. Returns what was done (for tests)."""
+    path = Path(path).absolute()
+    done: list[str] = []
+    if not path.parent.is_dir():
+        return done
+    for entry in sorted(path.parent.glob(f".{glob_escape(path.name)}.*")):
+        if entry.name.startswith(f".{path.name}.tmp-") and _dead_owner(entry, ".tmp-"):
+            shutil.rmtree(entry, ignore_errors=True)
+            done.append(f"removed {entry.name}")
+        elif entry.name.startswith(f".{path.name}.old-") and _dead_owner(entry, ".old-"):
+            if not path.exists():
+                os.replace(entry, path)
+                done.append(f"restored {path.name} from {entry.name}")
+            else:
+                shutil.rmtree(entry, ignore_errors=True)
+                done.append(f"removed {entry.name}")
+    return done
+
+
+def glob_escape(name: str) -> str:
+    """``name`` with glob's special characters escaped."""
+    import glob
+
+    return glob.escape(name)
+
+
 @contextlib.contextmanager
 def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a fresh temporary folder next to ``path``; on success it replaces ``path`` (a previous folder there
     is kept until the new one is complete, then deleted). On an exception the temporary folder is deleted and
-    ``path`` is left as it was. The caller decides whether replacing an existing folder is allowed."""
+    ``path`` is left as it was. The caller decides whether replacing an existing folder is allowed.
+
+    The temporary names carry the process id (``.NAME.tmp-PID-xxxx``, ``.NAME.old-PID``), so what a killed run
+    (``kill -9``) leaves is recognised and tidied by the next one (:func:`recover_dir`)."""
     path = Path(path).absolute()
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    recover_dir(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-{os.getpid()}-", dir=path.parent))
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700 folders
@@ -108,3 +159,57 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+_COMPLETE = ".complete"
+
+
+def recover_files(folder: str | os.PathLike, tag: str) -> list[str]:
+    """Tidy what an :func:`atomic_files` for ``(folder, tag)`` killed part-way left in ``folder``: a staging folder
+    of a dead process is finished if it was complete (its files are moved into place) and deleted otherwise.
+    Returns what was done (for tests)."""
+    folder = Path(folder)
+    done: list[str] = []
+    if not folder.is_dir():
+        return done
+    for stage in sorted(folder.glob(f".{glob_escape(tag)}.stage-*")):
+        if not (stage.is_dir() and _dead_owner(stage, ".stage-")):
+            continue
+        if (stage / _COMPLETE).exists():
+            _move_all(stage, folder)
+            done.append(f"finished {stage.name}")
+        else:
+            done.append(f"removed {stage.name}")
+        shutil.rmtree(stage, ignore_errors=True)
+    return done
+
+
+def _move_all(stage: Path, folder: Path, last: str | None = None) -> None:
+    names = sorted(p.name for p in stage.iterdir() if p.name != _COMPLETE)
+    if last in names:
+        names.remove(last)
+        names.append(last)
+    for name in names:
+        os.replace(stage / name, folder / name)
+
+
+@contextlib.contextmanager
+def atomic_files(folder: str | os.PathLike, tag: str, last: str | None = None) -> Iterator[Path]:
+    """A set of files written into an existing (or new) ``folder`` that may hold other files: yield a hidden
+    staging folder inside it (``.TAG.stage-PID-xxxx``); write the files there; on success they are moved into
+    ``folder`` (``last``, e.g. the set's JSON index, moved last) and the staging folder is deleted. On an
+    exception nothing reaches ``folder``. A staging folder left by a killed run is finished (if it was complete)
+    or deleted by the next run with the same tag (:func:`recover_files`)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    recover_files(folder, tag)
+    stage = Path(tempfile.mkdtemp(prefix=f".{tag}.stage-{os.getpid()}-", dir=folder))
+    try:
+        yield stage
+        for p in stage.iterdir():
+            if p.is_file():
+                os.chmod(p, 0o666 & ~_umask())
+        (stage / _COMPLETE).touch()  # from here on the set is committed: a killed run is finished by the next
+        _move_all(stage, folder, last)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)

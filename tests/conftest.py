@@ -1,7 +1,9 @@
-"""Shared fixtures: tiny datasets made with numpy (fast, no Mitsuba), paths to shared assets."""
+"""Shared fixtures: tiny datasets made with numpy (fast, no Mitsuba), paths to shared assets, tiny weights, and
+``mitsuba_variant``, which runs a test once per Mitsuba variant (``llvm_ad_rgb`` and the ``scalar_rgb`` fallback)."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -117,3 +119,70 @@ def tiny_val_dataset(tmp_path_factory) -> Path:
 def sphere_maps():
     """Factory ``sphere_maps(size=24, varied=False) -> MaterialMaps`` of a centred sphere (see ``_sphere_maps``)."""
     return _sphere_maps
+
+
+@pytest.fixture(params=["llvm_ad_rgb", "scalar_rgb"])
+def mitsuba_variant(request):
+    """Run the test once per Mitsuba variant: the variant is set for this process (``renderers.variant``) and
+    exported as ``MATCAP_MITSUBA_VARIANT`` for the commands a test starts as subprocesses. ``llvm_ad_rgb`` is
+    skipped (with the reason) where it cannot render, e.g. without libLLVM >= 17.
+
+    To run the whole suite in one variant instead: ``MATCAP_MITSUBA_VARIANT=scalar_rgb python -m pytest -q``.
+    """
+    pytest.importorskip("mitsuba")
+    import mitsuba as mi
+    import renderers.variant as rv
+
+    variant = request.param
+    if variant == "llvm_ad_rgb" and not rv.llvm_works():
+        pytest.skip("llvm_ad_rgb does not render here (needs libLLVM >= 17, e.g. apt-get install libllvm19)")
+    old_env, old_chosen = os.environ.get("MATCAP_MITSUBA_VARIANT"), rv._chosen
+    os.environ["MATCAP_MITSUBA_VARIANT"] = variant
+    rv._chosen = None
+    assert rv.choose_variant() == variant and mi.variant() == variant
+    try:
+        yield variant
+    finally:
+        if old_env is None:
+            os.environ.pop("MATCAP_MITSUBA_VARIANT", None)
+        else:
+            os.environ["MATCAP_MITSUBA_VARIANT"] = old_env
+        rv._chosen = old_chosen
+        if old_chosen is not None:
+            mi.set_variant(old_chosen)
+
+
+@pytest.fixture(scope="session")
+def tiny_weights(tmp_path_factory) -> Path:
+    """A folder with untrained ``tiny`` normal and BRDF networks (seed 0): fast stand-ins for the bundled models."""
+    from networks.checkpoint import save_weights
+    from networks.config import get_config
+    from networks.model import SDMUniPS
+
+    folder = tmp_path_factory.mktemp("weights")
+    for target in ("normal", "brdf"):
+        torch.manual_seed(0)
+        cfg = get_config("tiny", target)
+        save_weights(folder / f"{target}_tiny.safetensors", SDMUniPS(cfg), cfg, {"name": f"{target}_tiny"})
+    return folder
+
+
+def sphere_photos(folder: Path, h: int = 40, w: int = 56, n: int = 4, bits: int = 16, mask: bool = True) -> Path:
+    """A Lambertian sphere under n directional lights, written as PNGs (+ mask.png): a capture folder."""
+    from matcap import imageio
+
+    folder.mkdir(parents=True, exist_ok=True)
+    yy, xx = np.mgrid[0:h, 0:w]
+    r = min(h, w) * 0.4
+    x, y = (xx - w / 2) / r, (h / 2 - yy) / r
+    inside = x**2 + y**2 < 1
+    normal = np.dstack([x, y, np.sqrt(np.clip(1 - x**2 - y**2, 0, 1))])
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        L = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 1.0])
+        L /= np.linalg.norm(L)
+        img = np.where(inside[..., None], 0.7 * np.clip(normal @ L, 0, 1)[..., None], 0.05) * np.ones(3)
+        imageio.write_png(folder / f"img_{i:02d}.png", img, bits=bits)
+    if mask:
+        imageio.write_png(folder / "mask.png", inside.astype(np.float32), bits=8)
+    return folder

@@ -194,12 +194,12 @@ def test_eval_bad_options(diligent, tmp_path, capsys, extra, needle):
 def test_synth_params_json_that_is_not_an_object(tmp_path, capsys):
     (tmp_path / "d").mkdir()
     (tmp_path / "d" / "synth_params.json").write_text("[1]")
-    rc = run(["synth", "--out", str(tmp_path / "d"), "--scenes", "1", "--resolution", "8", "--no-progress"])
+    rc = run(["synth", "--out", str(tmp_path / "d"), "--scenes", "1", "--resolution", "8", "--quiet"])
     one_line_error(capsys, "synth_params.json: expected a JSON object, got a list", rc)
 
 
 def test_synth_refuses_to_mix_scenes_into_a_capture_result(result, capsys):
-    rc = run(["synth", "--out", str(result), "--scenes", "1", "--resolution", "8", "--no-progress"])
+    rc = run(["synth", "--out", str(result), "--scenes", "1", "--resolution", "8", "--quiet"])
     one_line_error(capsys, "not part of a `matcap synth` dataset", rc)
     assert not list(result.glob("scene_*")) and not (result / "synth_params.json").exists()
 
@@ -319,3 +319,26 @@ def test_weights_import_names_the_mistake(tmp_path, capsys):
         assert main(["weights", "import", str(arg), "--out", str(tmp_path / "out")]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and needle in err[0], err
+
+
+# ---- issue 17: a new user's environment variables
+
+
+def test_unknown_forced_mitsuba_variant_is_one_line(tmp_path, sphere_maps):
+    pytest.importorskip("mitsuba")
+    write_result(sphere_maps(8), tmp_path / "result")
+    env = {**__import__("os").environ, "MATCAP_MITSUBA_VARIANT": "llvm_rgb"}
+    r = subprocess.run([sys.executable, "-m", "matcap", "relight", str(tmp_path / "result"), "--quiet"],
+                       capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "MATCAP_MITSUBA_VARIANT='llvm_rgb' is not a Mitsuba variant" in lines[0], r.stderr
+
+
+def test_bad_memory_setting_is_one_line(tmp_path, monkeypatch, capsys):
+    from conftest import sphere_photos
+
+    photos = sphere_photos(tmp_path / "photos", h=8, w=8, n=2)
+    monkeypatch.setenv("MATCAP_MEMORY_GB", "lots")
+    rc = run(["capture", str(photos), "--out", str(tmp_path / "o"), "--weights", str(BUNDLED_NORMAL)])
+    one_line_error(capsys, "MATCAP_MEMORY_GB must be a number of gigabytes, got 'lots'", rc)

@@ -66,7 +66,23 @@ def test_install_can_set_the_inference_sample_set_size(tmp_path):
 def test_models_cli_lists_the_bundled_models():
     r = subprocess.run([sys.executable, "-m", "matcap", "models"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    assert "normal" in r.stdout
+    lines = {line.split(":")[0]: line for line in r.stdout.splitlines() if not line.startswith(" ")}
+    assert set(lines) == {"normal_small (default)", "brdf_small (default)"}, r.stdout
+    assert "mean angular error" in lines["normal_small (default)"]
+    brdf = lines["brdf_small (default)"]  # its normal head is untrained: no normal error shown for it
+    assert "angular" not in brdf and "mae" not in brdf and "RMSE base color / roughness / metallic" in brdf
+
+
+def test_validation_summary_per_target():
+    from matcap.commands.models import validation_summary
+
+    val = {"mae": 34.6, "mae_directional": 36.4, "rmse_base_color": 0.162, "rmse_roughness": 0.225,
+           "rmse_metallic": 0.294, "rmse_const_base_color": 0.203, "rmse_const_roughness": 0.247,
+           "rmse_const_metallic": 0.336}
+    assert validation_summary("brdf", val) == ("RMSE base color / roughness / metallic 0.162 / 0.225 / 0.294 "
+                                               "(best constant: 0.203 / 0.247 / 0.336)")
+    assert validation_summary("normal", val) == "mean angular error 34.60° (directional 36.40°)"
+    assert validation_summary("normal", {}) == "none" and validation_summary("brdf", {"mae": 3}) == "none"
 
 
 def test_bundled_models_on_the_example_capture(tmp_path):

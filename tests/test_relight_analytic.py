@@ -127,7 +127,10 @@ def test_exposure_scales_the_environment():
     np.testing.assert_allclose(b, a * 2.0 ** 1.5, rtol=1e-4)
 
 
-def test_negative_and_nonfinite_texels_are_clamped_with_a_warning():
+def test_negative_and_nonfinite_texels_are_clamped_with_a_warning(monkeypatch):
+    from renderers import emitters
+
+    monkeypatch.setattr(emitters, "_warned", set())
     env = np.full((8, 16, 3), 1.0, np.float32)
     env[1, 2] = -50.0
     env[2, 3, 1] = np.nan
@@ -135,6 +138,26 @@ def test_negative_and_nonfinite_texels_are_clamped_with_a_warning():
     with pytest.warns(UserWarning, match="clamped"):
         img = render(flat(), [EnvironmentLight("bad")], {"bad": env}, spp=4)
     assert np.isfinite(img).all() and img.min() >= 0
+
+
+def test_a_few_small_negative_texels_are_clamped_silently_and_a_bad_map_is_named_once(monkeypatch):
+    """DWAB-compressed maps hold a few tiny negatives: clamped without a word. A map whose negatives matter is
+    named once per process, however often it is rendered."""
+    from renderers import emitters
+
+    monkeypatch.setattr(emitters, "_warned", set())
+    env = np.full((8, 16, 3), 1.0, np.float32)
+    env[1, 2] = -1e-4
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        clean = emitters.sanitize_envmap(env, "dwab")
+    assert clean.min() == 0 and clean[1, 2].max() == 0
+    env[1, 2] = -5.0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(3):
+            emitters.sanitize_envmap(env, "studio.exr")
+    assert len(caught) == 1 and "studio.exr: 1 texel(s)" in str(caught[0].message)
 
 
 def test_back_hemisphere_culling_only_drops_unseen_texels():

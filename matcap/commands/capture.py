@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from matcap.commands.export import PRESET_NAMES
+
 
 def _xyz(text: str) -> tuple[float, float, float]:
     try:
@@ -20,7 +22,8 @@ def register(sub) -> None:
         description="Recover SVBRDF maps from a folder of photos taken from one fixed camera under several lights.",
     )
     p.add_argument("photos", help="folder of images (PNG/JPEG/TIFF/EXR/HDR); mask.* in it is used as the mask")
-    p.add_argument("--out", help="result folder (default: <photos>-matcap next to the photos folder)")
+    p.add_argument("--out", help="result folder (default: ./PHOTOS-matcap, named after the photos folder, in the "
+                                 "current folder)")
     p.add_argument("--mask", help="mask image (> 0 is the object); default: mask.* in the folder, else none")
     p.add_argument("--weights", action="append", metavar="FILE_OR_DIR",
                    help="model weights: our .safetensors or the published .pytmodel files, or a folder of them "
@@ -43,10 +46,11 @@ def register(sub) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
     p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")
-    p.add_argument("--spp", type=int, help="samples per pixel for --relight renders")
+    p.add_argument("--spp", type=int, help="samples per pixel for --relight / --point renders (default 16)")
     p.add_argument("--export", metavar="DIR", help="also export an engine-ready texture set to DIR")
-    p.add_argument("--preset", default="gltf", help="texture-set preset for --export (gltf, unreal, unity-hdrp, blender)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--preset", default="gltf", choices=PRESET_NAMES,
+                   help="texture-set preset for --export (default gltf; see `matcap export --help`)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 
@@ -56,7 +60,7 @@ def run(args) -> int:
     from networks.inference import check_device
 
     photos = Path(args.photos)
-    out = Path(args.out) if args.out else photos.resolve().parent / f"{photos.resolve().name}-matcap"
+    out = Path(args.out) if args.out else Path(f"{photos.resolve().name}-matcap")  # in the current folder
     if args.max_images is not None and args.max_images < 2:
         raise MatcapError(f"--max-images must be at least 2, got {args.max_images}")
     if args.pixel_samples is not None and args.pixel_samples < 1:

@@ -26,7 +26,7 @@ def register(sub) -> None:
     p.add_argument("--tonemap", choices=("aces", "clip"), default="aces", help="tone mapping (default aces)")
     p.add_argument("--out", required=True, help="gallery folder to create")
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 

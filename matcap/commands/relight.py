@@ -31,7 +31,7 @@ def register(sub) -> None:
                    help="render with roughness or metallic set to V on the mask, e.g. metallic=0 (repeatable)")
     p.add_argument("--out", help="output folder (default: the source folder, or the folder of a .glb / NAME.json)")
     p.add_argument("--overwrite", action="store_true", help="replace existing relight_* files")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 
