@@ -55,11 +55,17 @@ def _make_mesh(mi, name: str, obj: RenderObject, bsdf) -> object:
     mesh = mi.Mesh(name, len(g.vertices), len(g.faces), props=props, has_vertex_normals=g.normals is not None,
                    has_vertex_texcoords=True)
     params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(np.ascontiguousarray(g.vertices, np.float32).ravel())
-    params["faces"] = mi.UInt32(np.ascontiguousarray(g.faces, np.uint32).ravel())
+
+    def put(key: str, arr: np.ndarray, dtype) -> None:
+        # The buffer's own type: mi.Float / mi.UInt32 are JIT arrays in the llvm/cuda variants but plain Python
+        # scalars in the scalar ones (where the mesh buffers are drjit.scalar.ArrayXf / ArrayXu).
+        params[key] = type(params[key])(np.ascontiguousarray(arr, dtype).ravel())
+
+    put("vertex_positions", g.vertices, np.float32)
+    put("faces", g.faces, np.uint32)
     if g.normals is not None:
-        params["vertex_normals"] = mi.Float(np.ascontiguousarray(g.normals, np.float32).ravel())
-    params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(g.uv, np.float32).ravel())
+        put("vertex_normals", g.normals, np.float32)
+    put("vertex_texcoords", g.uv, np.float32)
     params.update()
     return mesh
 
