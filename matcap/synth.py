@@ -78,6 +78,7 @@ class AssetCache:
         self._meshes: dict = {}
         self._env: dict = {}
         self._tex: dict = {}
+        self.renderers: dict = {}  # resolution -> renderers.synth.BasisRenderer (Mitsuba scenes reused per scene)
 
     def mesh(self, name: str):
         if name not in self._meshes:
@@ -177,13 +178,27 @@ def combine(basis: np.ndarray, weights) -> np.ndarray:
     return np.tensordot(w, basis, axes=1).astype(np.float32)
 
 
-def render_spec(spec: SceneSpec, cache: AssetCache, spp: int) -> SceneResult:
-    from renderers.synth import render_scene
+def _mitsuba_variant() -> str:
+    from renderers.variant import choose_variant
+
+    return choose_variant()
+
+
+def render_spec(spec: SceneSpec, cache: AssetCache, spp: int, persistent: bool = True) -> SceneResult:
+    """Render one scene. ``persistent``: through the cache's :class:`renderers.synth.BasisRenderer`, whose Mitsuba
+    scenes are reused for every scene of the process (``False``: fresh Mitsuba scenes, as before session 8)."""
+    from renderers.synth import BasisRenderer, render_scene
     from scenes.synth_build import auto_exposure, build_render_objects, check_scene
 
     meshes, sets, envs = cache.for_spec(spec)
     objects = build_render_objects(spec, meshes, sets)
-    r = render_scene(objects, spec.lights(), envs, spec.resolution, spp=spp, seed=spec.render_seed)
+    renderer = None
+    if persistent and not _mitsuba_variant().startswith("scalar"):
+        renderer = cache.renderers.get(spec.resolution)
+        if renderer is None:
+            renderer = cache.renderers[spec.resolution] = BasisRenderer(spec.resolution)
+    r = render_scene(objects, spec.lights(), envs, spec.resolution, spp=spp, seed=spec.render_seed,
+                     renderer=renderer, persistent=persistent)
     raw = np.stack([combine(r.basis, im.weights) for im in spec.images])
     exposures = [auto_exposure(x, r.mask) for x in raw]
     images = np.stack([np.clip(x * e, 0, 1) for x, e in zip(raw, exposures)]).astype(np.float32)

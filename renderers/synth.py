@@ -114,6 +114,23 @@ def _emitter(light: Light, envmaps: dict[str, np.ndarray], weight: float = 1.0) 
     return d
 
 
+def _ground_truth_from(a: np.ndarray, b: np.ndarray) -> dict:
+    """Ground-truth maps from the AOV passes: ``a`` (H, W, 10) sh_normal, geo_normal, albedo, depth of the
+    principled shapes; ``b`` (H, W, 4) albedo (roughness, metallic, is_background), depth of the parameter shapes."""
+    hit = a[..., 9] > 0
+    hit2 = b[..., 3] > 0
+    normal, stats = finalize_normals(a[..., 0:3], a[..., 3:6], hit)
+    stats["mask_agreement"] = float((hit == hit2).mean())
+    zero3 = np.zeros(3, np.float32)
+    return {
+        "normal": normal, "mask": hit, "object_mask": hit & (b[..., 2] < 0.5),
+        "base_color": np.where(hit[..., None], np.clip(a[..., 6:9], 0, 1), zero3),
+        "roughness": np.where(hit, np.clip(b[..., 0], 0, 1), 0.0).astype(np.float32),
+        "metallic": np.where(hit, np.clip(b[..., 1], 0, 1), 0.0).astype(np.float32),
+        "stats": stats,
+    }
+
+
 class SceneRenderer:
     """Holds the Mitsuba shapes of one scene; renders any set of lights on them."""
 
@@ -180,18 +197,7 @@ class SceneRenderer:
         scene2 = mi.load_dict({"type": "scene", "sensor": sensor, **param_shapes})
         aov2 = mi.load_dict({"type": "aov", "aovs": "alb:albedo,dd:depth"})
         b = render_array(scene2, aov2, spp=1, seed=self.seed)
-        hit = a[..., 9] > 0
-        hit2 = b[..., 3] > 0
-        normal, stats = finalize_normals(a[..., 0:3], a[..., 3:6], hit)
-        stats["mask_agreement"] = float((hit == hit2).mean())
-        zero3 = np.zeros(3, np.float32)
-        return {
-            "normal": normal, "mask": hit, "object_mask": hit & (b[..., 2] < 0.5),
-            "base_color": np.where(hit[..., None], np.clip(a[..., 6:9], 0, 1), zero3),
-            "roughness": np.where(hit, np.clip(b[..., 0], 0, 1), 0.0).astype(np.float32),
-            "metallic": np.where(hit, np.clip(b[..., 1], 0, 1), 0.0).astype(np.float32),
-            "stats": stats,
-        }
+        return _ground_truth_from(a, b)
 
 
 def render_object_index(objects: list[RenderObject], resolution: int) -> np.ndarray:
@@ -214,12 +220,177 @@ def render_object_index(objects: list[RenderObject], resolution: int) -> np.ndar
 
 
 def render_scene(objects: list[RenderObject], basis: list[Light], envmaps: dict[str, np.ndarray], resolution: int,
-                 spp: int = DEFAULT_SPP, seed: int = 0) -> SynthRender:
-    """Render every basis light separately (environment maps at ``spp``, directional / point lights at half of it)
-    plus the ground truth."""
-    r = SceneRenderer(objects, resolution, spp, seed)
+                 spp: int = DEFAULT_SPP, seed: int = 0, renderer: "BasisRenderer | None" = None,
+                 persistent: bool = True) -> SynthRender:
+    """Render every basis light separately (environment maps at ``spp``, other lights at half of it) plus the
+    ground truth.
+
+    ``persistent`` (default; JIT variants only): through a :class:`BasisRenderer` (``renderer``, or a new one)
+    whose Mitsuba scenes outlive the scene: pass the same ``renderer`` for every scene of a dataset and nothing is
+    loaded or compiled again. ``persistent=False`` loads fresh Mitsuba scenes (:class:`SceneRenderer`, the way before session 8);
+    both give the same images up to Monte Carlo noise.
+    """
     delta_spp = max(1, round(spp * DELTA_SPP_FACTOR))
-    renders = np.stack([r.render([light], envmaps, spp=None if isinstance(light, EnvironmentLight) else delta_spp)
+    if persistent and _mi().variant().startswith("scalar"):
+        persistent = False  # nothing to save there (no kernel compilation); see BasisRenderer
+    if not persistent:
+        r = SceneRenderer(objects, resolution, spp, seed)
+        renders = np.stack([r.render([light], envmaps, spp=None if isinstance(light, EnvironmentLight) else delta_spp)
+                            for light in basis])
+        return SynthRender(basis=renders, **r.ground_truth())
+    if renderer is None or renderer.resolution != int(resolution):
+        renderer = BasisRenderer(resolution)
+    renderer.set_objects(objects)
+    renders = np.stack([renderer.render(light, envmaps, spp if isinstance(light, EnvironmentLight) else delta_spp, seed)
                         for light in basis])
-    gt = r.ground_truth()
-    return SynthRender(basis=renders, **gt)
+    return SynthRender(basis=renders, **renderer.ground_truth(seed))
+
+
+# ----------------------------------------------------------------------------------------------- persistent scenes
+
+_PARKED = np.float32([[5.0, 5.0, -50.0], [5.0001, 5.0, -50.0], [5.0, 5.0001, -50.0]])  # an unused slot's triangle
+
+
+class BasisRenderer:
+    """Mitsuba scenes that outlive one synthetic scene: one per kind of light (the path tracer needs the light
+    alone in its scene) plus one for the BRDF-parameter ground-truth pass, each with ``slots`` mesh shapes.
+
+    A new synthetic scene only overwrites buffers through ``mi.traverse`` (vertex positions, faces, normals, uv,
+    texture data, emitter parameters); unused slots hold one tiny triangle parked outside the view behind the
+    scene. Nothing is loaded and, once each kind has been seen, no kernel is compiled again: Dr.Jit's kernel cache
+    hits because the scene's structure never changes (kernel compilation used to take more time per scene than
+    path tracing at 256^2). JIT variants only (llvm/cuda): the scalar variants compile nothing, and their
+    ParameterSet cannot swap a buffer for one of another size; :func:`render_scene` loads fresh scenes there.
+    """
+
+    def __init__(self, resolution: int, slots: int = 5, max_depth: int = MAX_DEPTH):
+        self.mi = mi = _mi()
+        if mi.variant().startswith("scalar"):
+            raise ValueError(f"BasisRenderer needs a JIT variant (llvm_ad_rgb / cuda_ad_rgb), not {mi.variant()}")
+        self.resolution, self.slots = int(resolution), int(slots)
+        self.integrator = mi.load_dict({"type": "path", "max_depth": int(max_depth)})
+        self.aov = mi.load_dict({"type": "aov", "aovs": "nn:sh_normal,ng:geo_normal,alb:albedo,dd:depth"})
+        self.aov2 = mi.load_dict({"type": "aov", "aovs": "alb:albedo,dd:depth"})
+        self._sensors: dict[tuple, object] = {}
+        self._scenes: dict[str, tuple] = {}  # kind -> (scene, params)
+        self._objects: list[RenderObject] = []
+        self._buffers: list[dict] | None = None
+        self._version = 0
+        self._synced: dict[str, int] = {}
+
+    # -- helpers
+    def _sensor(self, spp: int, seed: int, centre: bool = False):
+        key = (int(spp), int(seed), centre)
+        if key not in self._sensors:
+            if len(self._sensors) > 16:
+                self._sensors.clear()
+            self._sensors[key] = _sensor(self.mi, self.resolution, spp, seed, centre=centre)
+        return self._sensors[key]
+
+    def _placeholder(self) -> RenderObject:
+        from scenes.procedural import Geometry
+
+        g = Geometry(_PARKED.copy(), np.int32([[0, 1, 2]]), None, np.float32([[0, 0], [1, 0], [0, 1]]))
+        z = np.zeros((4, 4), np.float32)
+        return RenderObject(g, np.zeros((4, 4, 3), np.float32), z + 0.5, z, 0.5, 1.0)
+
+    def _new_scene(self, kind: str, emitter: dict | None):
+        mi = self.mi
+        ph = self._placeholder()
+        desc = {"type": "scene"}
+        for k in range(self.slots):
+            bsdf = _params_as_albedo(mi, ph) if kind == "params" else _principled(mi, ph)
+            desc[f"shape_{k:02d}"] = _make_mesh(mi, f"shape_{k:02d}", ph, bsdf)
+        if emitter is not None:
+            desc["light_00"] = emitter
+        scene = mi.load_dict(desc)
+        return scene, mi.traverse(scene)
+
+    def set_objects(self, objects: list[RenderObject]) -> None:
+        """The shapes of the next synthetic scene (at most ``slots``; more rebuild the scenes with more slots)."""
+        if len(objects) > self.slots:
+            self.slots = len(objects)
+            self._scenes.clear()
+        self._objects = list(objects)
+        self._version += 1
+
+    def _sync(self, kind: str) -> None:
+        """Write the current objects into the shapes of one kind's scene (once per synthetic scene)."""
+        if self._synced.get(kind) == self._version:
+            return
+        mi = self.mi
+        scene, params = self._scenes[kind]
+        objs = self._objects + [self._placeholder()] * (self.slots - len(self._objects))
+        for k, o in enumerate(objs):
+            name = f"shape_{k:02d}"
+            g = o.geometry
+
+            def put(key, arr, dtype):
+                params[key] = type(params[key])(np.ascontiguousarray(arr, dtype).ravel())
+
+            put(f"{name}.vertex_positions", g.vertices, np.float32)
+            put(f"{name}.faces", g.faces, np.uint32)
+            normals = g.normals if g.normals is not None else _flat_vertex_normals(g)
+            put(f"{name}.vertex_normals", normals, np.float32)
+            # the texture repeat goes into the uv (a texture's to_uv is a literal in the kernel: one kernel per value)
+            put(f"{name}.vertex_texcoords", np.asarray(g.uv, np.float32) * np.float32(o.uv_scale), np.float32)
+            if kind == "params":
+                tex = np.stack([o.roughness, o.metallic,
+                                np.full_like(o.roughness, 1.0 if o.is_background else 0.0)], -1)
+                maps = {"bsdf.brdf_0.reflectance": tex}
+            else:
+                maps = {"bsdf.brdf_0.base_color": o.base_color, "bsdf.brdf_0.roughness": o.roughness[..., None],
+                        "bsdf.brdf_0.metallic": o.metallic[..., None]}
+                params[f"{name}.bsdf.brdf_0.specular"] = type(params[f"{name}.bsdf.brdf_0.specular"])(float(o.specular))
+            for key, arr in maps.items():
+                params[f"{name}.{key}.data"] = mi.TensorXf(np.ascontiguousarray(arr, np.float32))
+        params.update()
+        self._synced[kind] = self._version
+
+    def _scene_for(self, light: Light, envmaps: dict[str, np.ndarray], weight: float = 1.0):
+        mi = self.mi
+        desc = _emitter(light, envmaps, weight)
+        kind = desc["type"]
+        if kind not in self._scenes:
+            self._scenes[kind] = self._new_scene(kind, desc)
+            self._synced.pop(kind, None)
+        else:
+            _, params = self._scenes[kind]
+            fresh = mi.traverse(mi.load_dict(desc))
+            for name in fresh.keys():
+                if name != "sampling_weight":
+                    params[f"light_00.{name}"] = fresh[name]
+            params.update()
+        self._sync(kind)
+        return self._scenes[kind][0]
+
+    # -- rendering
+    def render(self, light: Light, envmaps: dict[str, np.ndarray], spp: int, seed: int) -> np.ndarray:
+        """Linear (H, W, 3) float32 render of the current objects under one light."""
+        scene = self._scene_for(light, envmaps)
+        return render_array(scene, self.integrator, spp=spp, seed=seed, sensor=self._sensor(spp, seed))[..., :3]
+
+    def ground_truth(self, seed: int = 0) -> dict:
+        """Normals, masks and BRDF maps from two one-sample (pixel centre) AOV passes (as SceneRenderer's)."""
+        if not self._scenes:
+            raise RuntimeError("render a light first")
+        kind = next(k for k in self._scenes if k != "params")
+        self._sync(kind)
+        sensor = self._sensor(1, seed, centre=True)
+        a = render_array(self._scenes[kind][0], self.aov, spp=1, seed=seed, sensor=sensor)
+        if "params" not in self._scenes:
+            self._scenes["params"] = self._new_scene("params", None)
+        self._sync("params")
+        b = render_array(self._scenes["params"][0], self.aov2, spp=1, seed=seed, sensor=sensor)
+        return _ground_truth_from(a, b)
+
+
+def _flat_vertex_normals(g) -> np.ndarray:
+    """Vertex normals of a mesh given without (the placeholder triangle): its face normal, per vertex."""
+    v = np.asarray(g.vertices, np.float64)
+    f = np.asarray(g.faces, np.int64)
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    acc = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(acc, f[:, k], n)
+    return (acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-20)).astype(np.float32)
