@@ -25,7 +25,7 @@ import numpy as np
 from matcap.errors import MatcapError
 from scenes.lights import EnvironmentLight
 from scenes.synth_spec import (
-    GENERATOR_VERSION,
+    GENERATOR_VERSIONS,
     NUM_IMAGES,
     SPLITS,
     AssetCatalog,
@@ -65,9 +65,10 @@ def catalog_from_dir(assets: str | os.PathLike | None) -> AssetCatalog:
     envs = sorted(f"envmaps/{p.name}" for p in (root / "envmaps").glob("*") if p.suffix.lower() in (".exr", ".hdr"))
     texs = sorted(f"textures/{p.name}" for p in (root / "textures").glob("*")
                   if p.is_dir() and any(p.glob("basecolor.*")))
+    nmaps = [t for t in texs if any((root / t).glob("normal_gl.*"))]
     if not (meshes or envs or texs):
         raise MatcapError(f"--assets {assets}: no meshes/, envmaps/ or textures/ with usable files")
-    return AssetCatalog(meshes, envs, texs)
+    return AssetCatalog(meshes, envs, texs, nmaps)
 
 
 class AssetCache:
@@ -132,7 +133,7 @@ class AssetCache:
                 arr, _ = to_linear_float(read_image(files[0]), decode_srgb_8bit=srgb)
                 return cv2.resize(arr, (TEXTURE_SIZE, TEXTURE_SIZE), interpolation=cv2.INTER_AREA)
 
-            out = {"basecolor": load("basecolor", True), "roughness": None}
+            out = {"basecolor": load("basecolor", True), "roughness": None, "normal": load("normal_gl", False)}
             packed = load("arm", False)
             packed = packed if packed is not None else load("orm", False)
             if packed is not None:
@@ -151,7 +152,7 @@ class AssetCache:
         sets = {}
         for o in objs:
             m = o.material
-            for t in (m.color_tex, m.roughness_tex, m.metallic_tex):
+            for t in (m.color_tex, m.roughness_tex, m.metallic_tex, m.normal_tex):
                 if t is not None and t.pattern == "pbr":
                     sets[t.pbr_set] = self.texture_set(t.pbr_set)
         envs = {b.source: self.envmap(b.source) for b in spec.lights() if isinstance(b, EnvironmentLight)}
@@ -168,6 +169,7 @@ class SceneResult:
     images: np.ndarray  # (10, H, W, 3) exposed, clipped
     lights: list[dict]
     problems: list[str] = field(default_factory=list)
+    basis_vectors: np.ndarray | None = None  # (B, 3) vector irradiance of each basis light at the origin
 
 
 def combine(basis: np.ndarray, weights) -> np.ndarray:
@@ -202,11 +204,24 @@ def render_spec(spec: SceneSpec, cache: AssetCache, spp: int, persistent: bool =
     raw = np.stack([combine(r.basis, im.weights) for im in spec.images])
     exposures = [auto_exposure(x, r.mask) for x in raw]
     images = np.stack([np.clip(x * e, 0, 1) for x, e in zip(raw, exposures)]).astype(np.float32)
-    lights = [{"image": f"{k:03d}.png", "config": im.config, "weights": im.weights, "exposure": float(e)}
-              for k, (im, e) in enumerate(zip(spec.images, exposures))]
+    vectors = basis_light_vectors(spec, envs)
+    lights = []
+    for k, (im, e) in enumerate(zip(spec.images, exposures)):
+        entry = {"image": f"{k:03d}.png", "config": im.config, "weights": im.weights, "exposure": float(e)}
+        if spec.data_version >= 2:  # per-image light ground truth (a light-alignment loss reads it)
+            entry["light_vector"] = [float(x) for x in float(e) * np.asarray(im.weights, np.float64) @ vectors]
+        lights.append(entry)
     problems = check_scene(images, r.normal, r.mask, r.object_mask, raw, [im.config for im in spec.images],
                            r.stats, r.stats.get("mask_agreement", 1.0))
-    return SceneResult(spec, r, images, lights, problems)
+    return SceneResult(spec, r, images, lights, problems, vectors)
+
+
+def basis_light_vectors(spec: SceneSpec, envs: dict[str, np.ndarray]) -> np.ndarray:
+    """(B, 3) float32: :func:`scenes.lights.light_vector` of each basis light (env maps as rendered)."""
+    from scenes.lights import light_vector
+
+    return np.stack([light_vector(b, envs.get(b.source) if isinstance(b, EnvironmentLight) else None)
+                     for b in spec.lights()]).astype(np.float32)
 
 
 def write_scene(result: SceneResult, folder: Path) -> None:
@@ -218,8 +233,17 @@ def write_scene(result: SceneResult, folder: Path) -> None:
     spec_d = spec.to_dict()
     spec_d["ground_truth_stats"] = r.stats
     (folder / "spec.json").write_text(json.dumps(spec_d, indent=1))
-    (folder / "lights.json").write_text(json.dumps({"basis": spec.basis, "basis_kind": spec.basis_kind,
-                                                    "images": result.lights}, indent=1))
+    lights = {"basis": spec.basis, "basis_kind": spec.basis_kind, "images": result.lights}
+    if spec.data_version >= 2:
+        lights["basis_light_vector"] = result.basis_vectors.tolist()
+        lights["light_vector"] = ("vector irradiance at the scene origin (camera space, toward the light; length = "
+                                  "irradiance, mean over RGB), of the image as stored: exposure * sum_b w_b * "
+                                  "basis_light_vector[b]")
+    (folder / "lights.json").write_text(json.dumps(lights, indent=1))
+    extra = {}
+    if spec.data_version >= 2:
+        extra = {"data_version": np.array(spec.data_version), "basis_light_vec": result.basis_vectors,
+                 "light_vec": np.array([x["light_vector"] for x in result.lights], np.float32)}
     for k, img in enumerate(result.images):
         write_png(folder / f"{k:03d}.png", img, bits=16)
     write_png(folder / "mask.png", r.mask.astype(np.float32), bits=8)
@@ -232,15 +256,15 @@ def write_scene(result: SceneResult, folder: Path) -> None:
              base_color=r.base_color.astype(np.float16), roughness=r.roughness.astype(np.float16),
              metallic=r.metallic.astype(np.float16), images=result.images.astype(np.float16),
              weights=np.array([im.weights for im in spec.images], np.float32),
-             exposure=np.array([x["exposure"] for x in result.lights], np.float32))
+             exposure=np.array([x["exposure"] for x in result.lights], np.float32), **extra)
 
 
 # ----------------------------------------------------------------------------------------------- dataset
 
 
-def _params(split, resolution, seed, scenes, spp, assets_used):
+def _params(split, resolution, seed, scenes, spp, assets_used, data_version=1):
     return {"split": split, "resolution": int(resolution), "seed": int(seed), "num_scenes": int(scenes),
-            "spp": int(spp), "generator_version": GENERATOR_VERSION, "assets": assets_used}
+            "spp": int(spp), "generator_version": GENERATOR_VERSIONS[data_version], "assets": assets_used}
 
 
 def _check_params(out: Path, params: dict) -> None:
@@ -358,8 +382,14 @@ def _alive(pid: int) -> bool:
 
 
 def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str | None = None,
-              assets=None, split: str = "train", spp: int = 16, progress: bool = True) -> dict:
-    """Generate (this shard's part of) a dataset. Returns {"rendered", "skipped", "failed", "seconds"}."""
+              assets=None, split: str = "train", spp: int = 16, progress: bool = True, data_version: int = 1) -> dict:
+    """Generate (this shard's part of) a dataset. Returns {"rendered", "skipped", "failed", "seconds"}.
+
+    ``data_version`` 1 draws the scenes it always drew for a seed; 2 is data v2 (scenes.synth_spec.generate_scene_v2).
+    """
+    if data_version not in GENERATOR_VERSIONS:
+        raise MatcapError(f"--data-version must be one of {', '.join(map(str, sorted(GENERATOR_VERSIONS)))}, "
+                          f"got {data_version}")
     if split not in SPLITS:
         raise MatcapError(f"--split must be train or test, got {split!r}")
     if scenes < 1:
@@ -382,7 +412,7 @@ def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str
     out.mkdir(parents=True, exist_ok=True)
     assets_used = None if assets is None else {"meshes": len(catalog.meshes), "envmaps": len(catalog.envmaps),
                                                "textures": len(catalog.textures)}
-    _check_params(out, _params(split, resolution, seed, scenes, spp, assets_used))
+    _check_params(out, _params(split, resolution, seed, scenes, spp, assets_used, data_version))
     with _term_as_interrupt(), ShardLock(out, i, n):  # one process per shard
         cache = AssetCache(assets)
         todo = [k for k in range(i, scenes, n) if not (out / f"scene_{k:06d}" / "spec.json").exists()]
@@ -399,7 +429,7 @@ def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str
                 final = out / f"scene_{k:06d}"
                 done = False
                 for attempt in range(MAX_ATTEMPTS):
-                    spec = generate_scene(seed, split, k, resolution, catalog, attempt)
+                    spec = generate_scene(seed, split, k, resolution, catalog, attempt, data_version)
                     result = render_spec(spec, cache, spp)
                     if result.problems:
                         _log_failure(out, spec, result.problems)

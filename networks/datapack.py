@@ -26,6 +26,7 @@ import numpy as np
 GAMMA = 2.2
 REQUIRED = ("basis", "basis_kind", "weights", "exposure", "normal", "mask", "object_mask", "base_color", "roughness",
             "metallic")
+V2_KEYS = ("data_version", "basis_light_vec", "light_vec")  # data v2 scenes: stored as they are
 
 
 def encode_scene(scene: dict[str, np.ndarray], quality: int = 0) -> dict[str, np.ndarray]:
@@ -54,7 +55,8 @@ def encode_scene(scene: dict[str, np.ndarray], quality: int = 0) -> dict[str, np
                   "basis_webp_offsets": np.cumsum([0] + [len(b) for b in blobs]).astype(np.int64),
                   "basis_shape": np.asarray(codes.shape, np.int64)}
     return {
-        **stored, "basis_scale": scale, "basis_kind": np.asarray(scene["basis_kind"]),
+        **stored, **{k: np.asarray(scene[k]) for k in V2_KEYS if k in scene},
+        "basis_scale": scale, "basis_kind": np.asarray(scene["basis_kind"]),
         "weights": scene["weights"].astype(np.float32), "exposure": scene["exposure"].astype(np.float32),
         "normal": unit8((scene["normal"].astype(np.float32) + 1.0) * 0.5),
         "mask": scene["mask"].astype(bool), "object_mask": scene["object_mask"].astype(bool),
@@ -88,6 +90,7 @@ def decode_scene(packed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         "roughness": (packed["roughness"] / 255.0).astype(np.float16),
         "metallic": (packed["metallic"] / 255.0).astype(np.float16),
         "images": images.astype(np.float16), "weights": packed["weights"], "exposure": packed["exposure"],
+        **{k: packed[k] for k in V2_KEYS if k in packed},
     }
 
 

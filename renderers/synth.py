@@ -13,7 +13,7 @@ import numpy as np
 
 from renderers.emitters import emitter_dict
 from renderers.variant import render_array
-from scenes.lights import EnvironmentLight, Light
+from scenes.lights import AreaLight, EnvironmentLight, Light, SpotLight
 from scenes.synth_build import RenderObject, finalize_normals
 
 DEFAULT_SPP = 16
@@ -70,19 +70,82 @@ def _make_mesh(mi, name: str, obj: RenderObject, bsdf) -> object:
     return mesh
 
 
-def _principled(mi, obj: RenderObject):
-    return mi.load_dict({"type": "twosided", "bsdf": {
+FLAT_NORMAL = np.float32([0.5, 0.5, 1.0])
+
+
+def _principled(mi, obj: RenderObject, normal_mapped: bool | None = None):
+    """twosided(principled), or twosided(normalmap(principled)) when the object has a normal map (or
+    ``normal_mapped`` asks for the wrapper anyway: a flat map then, which shades like none)."""
+    bsdf = {
         "type": "principled",
         "base_color": _bitmap_texture(mi, obj.base_color, obj.uv_scale),
         "roughness": _bitmap_texture(mi, obj.roughness[..., None], obj.uv_scale),
         "metallic": _bitmap_texture(mi, obj.metallic[..., None], obj.uv_scale),
         "specular": float(obj.specular),
-    }})
+    }
+    if normal_mapped is None:
+        normal_mapped = obj.normal_map is not None
+    if normal_mapped:
+        nmap = obj.normal_map if obj.normal_map is not None else np.broadcast_to(FLAT_NORMAL, (4, 4, 3))
+        bsdf = {"type": "normalmap", "normalmap": _bitmap_texture(mi, nmap, obj.uv_scale), "bsdf": bsdf}
+    return mi.load_dict({"type": "twosided", "bsdf": bsdf})
 
 
-def _params_as_albedo(mi, obj: RenderObject):
-    """A diffuse BSDF whose reflectance is (roughness, metallic, is_background): read back with the albedo AOV."""
-    tex = np.stack([obj.roughness, obj.metallic, np.full_like(obj.roughness, 1.0 if obj.is_background else 0.0)], -1)
+def bilinear_repeat(tex: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Look a texture up as Mitsuba's ``bitmap`` does (bilinear, wrap ``repeat``, row 0 at v = 0).
+
+    tex: (S, T, C); uv: (N, 2) -> (N, C) float32."""
+    tex = np.asarray(tex, np.float32)
+    h, w = tex.shape[:2]
+    uv = np.asarray(uv, np.float64)
+    x = (uv[:, 0] - np.floor(uv[:, 0])) * w - 0.5
+    y = (uv[:, 1] - np.floor(uv[:, 1])) * h - 0.5
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x0, y0 = x0.astype(np.int64) % w, y0.astype(np.int64) % h
+    x1, y1 = (x0 + 1) % w, (y0 + 1) % h
+    out = (tex[y0, x0] * (1 - fx) * (1 - fy) + tex[y0, x1] * fx * (1 - fy)
+           + tex[y1, x0] * (1 - fx) * fy + tex[y1, x1] * fx * fy)
+    return out.astype(np.float32)
+
+
+def apply_normal_maps(sh_normal: np.ndarray, dp_du: np.ndarray, uv: np.ndarray, index: np.ndarray,
+                      hit: np.ndarray, maps: dict[int, np.ndarray]) -> np.ndarray:
+    """The shading normals Mitsuba's ``normalmap`` BSDF uses, from AOVs (H, W, .): ``n = normalize(s x + t y + N z)``
+    with the map's (x, y, z) at the pixel's uv, N the interpolated normal, s = dp/du made orthogonal to N,
+    t = N x s. ``index``: (H, W) int shape slot per pixel; ``maps``: slot -> (S, S, 3) encoded map (uv already
+    scaled)."""
+    out = np.asarray(sh_normal, np.float32).copy()
+    for idx, nmap in maps.items():
+        sel = hit & (np.asarray(index) == idx)
+        if nmap is None or not sel.any():
+            continue
+        m = bilinear_repeat(nmap, uv[sel]) * 2 - 1
+        n = out[sel].astype(np.float64)
+        d = dp_du[sel].astype(np.float64)
+        s_ = d - n * (n * d).sum(-1, keepdims=True)
+        s_ /= np.maximum(np.linalg.norm(s_, axis=-1, keepdims=True), 1e-12)
+        t_ = np.cross(n, s_)
+        v = s_ * m[:, 0:1] + t_ * m[:, 1:2] + n * m[:, 2:3]
+        out[sel] = v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+    return out
+
+
+def _params_tex(obj: RenderObject, slot: int) -> np.ndarray:
+    """(S, S, 3): roughness, metallic, and a code of (is_background, slot): 0.5 * is_background + (slot + 1) / 256
+    (exact in float32; below 0.5 for objects)."""
+    code = (0.5 if obj.is_background else 0.0) + (slot + 1) / 256.0
+    return np.stack([obj.roughness, obj.metallic, np.full_like(obj.roughness, code)], -1)
+
+
+def _decode_slot(code: np.ndarray) -> np.ndarray:
+    """Shape slot per pixel from the third channel of the parameter pass (-1 where nothing was hit)."""
+    return np.rint((code - np.where(code >= 0.5, 0.5, 0.0)) * 256).astype(np.int64) - 1
+
+
+def _params_as_albedo(mi, obj: RenderObject, slot: int = 0):
+    """A diffuse BSDF whose reflectance is :func:`_params_tex`: read back with the albedo AOV."""
+    tex = _params_tex(obj, slot)
     return mi.load_dict({"type": "twosided", "bsdf": {"type": "diffuse",
                                                       "reflectance": _bitmap_texture(mi, tex, obj.uv_scale)}})
 
@@ -100,7 +163,28 @@ def _sensor(mi, resolution: int, spp: int, seed: int, centre: bool = False):
     })
 
 
+def _look_at(mi, position, target):
+    p, t = np.asarray(position, float), np.asarray(target, float)
+    d = t - p
+    up = [0, 1, 0] if abs(d[1]) < 0.99 * np.linalg.norm(d) else [1, 0, 0]
+    return mi.ScalarTransform4f().look_at(origin=p.tolist(), target=t.tolist(), up=up)
+
+
 def _emitter(light: Light, envmaps: dict[str, np.ndarray], weight: float = 1.0) -> dict:
+    """The Mitsuba dict of one light (an area light is a ``rectangle`` shape with an ``area`` emitter)."""
+    if isinstance(light, SpotLight):
+        mi = _mi()
+        return {"type": "spot", "to_world": _look_at(mi, light.position, light.target),
+                "intensity": {"type": "rgb", "value": [float(v) * weight for v in light.intensity]},
+                "cutoff_angle": float(light.cutoff_deg), "beam_width": float(light.beam_deg)}
+    if isinstance(light, AreaLight):
+        mi = _mi()
+        # rectangle: [-1, 1]^2 in z = 0, emitting toward +z; look_at's z axis points at the target
+        return {"type": "rectangle",
+                "to_world": _look_at(mi, light.position, light.target) @ mi.ScalarTransform4f().scale(
+                    [light.size / 2, light.size / 2, 1.0]),
+                "emitter": {"type": "area", "radiance": {"type": "rgb",
+                                                         "value": [float(v) * weight for v in light.radiance]}}}
     pixels = envmaps.get(light.source) if isinstance(light, EnvironmentLight) else None
     if isinstance(light, EnvironmentLight) and pixels is None:
         raise ValueError(f"environment map {light.source!r} not loaded")
@@ -112,6 +196,24 @@ def _emitter(light: Light, envmaps: dict[str, np.ndarray], weight: float = 1.0) 
             key = "irradiance" if d["type"] == "directional" else "intensity"
             d[key] = {"type": "rgb", "value": [v * weight for v in d[key]["value"]]}
     return d
+
+
+GT_AOVS = "nn:sh_normal,ng:geo_normal,alb:albedo,dd:depth"
+GT_AOVS_NORMAL_MAPPED = GT_AOVS + ",uv:uv,dpdu:dp_du"  # channels 10-11, 12-14
+
+
+def _normal_mapped(a: np.ndarray, b: np.ndarray, objects: list[RenderObject], uv_scaled: bool) -> np.ndarray:
+    """``a`` (the 15-channel AOV pass) with its shading normals (channels 0-2) replaced by the normal-mapped ones;
+    the shape slot of each pixel comes from the parameter pass ``b``."""
+    slot = _decode_slot(b[..., 2])
+    hit = (a[..., 9] > 0) & (b[..., 3] > 0)
+    a = a.copy()
+    for k, o in enumerate(objects):
+        if o.normal_map is None:
+            continue
+        uv = a[..., 10:12] * np.float32(1.0 if uv_scaled else o.uv_scale)
+        a[..., 0:3] = apply_normal_maps(a[..., 0:3], a[..., 12:15], uv, slot, hit, {k: o.normal_map})
+    return a
 
 
 def _ground_truth_from(a: np.ndarray, b: np.ndarray) -> dict:
@@ -189,14 +291,17 @@ class SceneRenderer:
         """Normals, masks and BRDF maps from two one-sample (pixel centre) AOV passes."""
         mi = self.mi
         sensor = _sensor(mi, self.resolution, 1, self.seed, centre=True)
-        aov = mi.load_dict({"type": "aov", "aovs": "nn:sh_normal,ng:geo_normal,alb:albedo,dd:depth"})
+        nmapped = any(o.normal_map is not None for o in self.objects)
+        aov = mi.load_dict({"type": "aov", "aovs": GT_AOVS_NORMAL_MAPPED if nmapped else GT_AOVS})
         scene = mi.load_dict({"type": "scene", "sensor": sensor, **self.shapes})
         a = render_array(scene, aov, spp=1, seed=self.seed)
-        param_shapes = {name: _make_mesh(mi, name, o, _params_as_albedo(mi, o))
-                        for (name, _), o in zip(self.shapes.items(), self.objects)}
+        param_shapes = {name: _make_mesh(mi, name, o, _params_as_albedo(mi, o, k))
+                        for k, ((name, _), o) in enumerate(zip(self.shapes.items(), self.objects))}
         scene2 = mi.load_dict({"type": "scene", "sensor": sensor, **param_shapes})
         aov2 = mi.load_dict({"type": "aov", "aovs": "alb:albedo,dd:depth"})
         b = render_array(scene2, aov2, spp=1, seed=self.seed)
+        if nmapped:
+            a = _normal_mapped(a, b, self.objects, uv_scaled=False)
         return _ground_truth_from(a, b)
 
 
@@ -222,8 +327,8 @@ def render_object_index(objects: list[RenderObject], resolution: int) -> np.ndar
 def render_scene(objects: list[RenderObject], basis: list[Light], envmaps: dict[str, np.ndarray], resolution: int,
                  spp: int = DEFAULT_SPP, seed: int = 0, renderer: "BasisRenderer | None" = None,
                  persistent: bool = True) -> SynthRender:
-    """Render every basis light separately (environment maps at ``spp``, other lights at half of it) plus the
-    ground truth.
+    """Render every basis light separately (environment maps and area lights at ``spp``, delta lights -
+    directional, point, spot - at half of it) plus the ground truth.
 
     ``persistent`` (default; JIT variants only): through a :class:`BasisRenderer` (``renderer``, or a new one)
     whose Mitsuba scenes outlive the scene: pass the same ``renderer`` for every scene of a dataset and nothing is
@@ -235,14 +340,14 @@ def render_scene(objects: list[RenderObject], basis: list[Light], envmaps: dict[
         persistent = False  # nothing to save there (no kernel compilation); see BasisRenderer
     if not persistent:
         r = SceneRenderer(objects, resolution, spp, seed)
-        renders = np.stack([r.render([light], envmaps, spp=None if isinstance(light, EnvironmentLight) else delta_spp)
-                            for light in basis])
+        renders = np.stack([r.render([light], envmaps, spp=None if isinstance(light, (EnvironmentLight, AreaLight))
+                                     else delta_spp) for light in basis])
         return SynthRender(basis=renders, **r.ground_truth())
     if renderer is None or renderer.resolution != int(resolution):
         renderer = BasisRenderer(resolution)
     renderer.set_objects(objects)
-    renders = np.stack([renderer.render(light, envmaps, spp if isinstance(light, EnvironmentLight) else delta_spp, seed)
-                        for light in basis])
+    renders = np.stack([renderer.render(light, envmaps, spp if isinstance(light, (EnvironmentLight, AreaLight))
+                                        else delta_spp, seed) for light in basis])
     return SynthRender(basis=renders, **renderer.ground_truth(seed))
 
 
@@ -263,13 +368,14 @@ class BasisRenderer:
     ParameterSet cannot swap a buffer for one of another size; :func:`render_scene` loads fresh scenes there.
     """
 
-    def __init__(self, resolution: int, slots: int = 5, max_depth: int = MAX_DEPTH):
+    def __init__(self, resolution: int, slots: int = 5, max_depth: int = MAX_DEPTH, normal_maps: bool = False):
         self.mi = mi = _mi()
         if mi.variant().startswith("scalar"):
             raise ValueError(f"BasisRenderer needs a JIT variant (llvm_ad_rgb / cuda_ad_rgb), not {mi.variant()}")
         self.resolution, self.slots = int(resolution), int(slots)
+        self.normal_maps = bool(normal_maps)  # every shape's BSDF wrapped in a normalmap (flat where it has none)
         self.integrator = mi.load_dict({"type": "path", "max_depth": int(max_depth)})
-        self.aov = mi.load_dict({"type": "aov", "aovs": "nn:sh_normal,ng:geo_normal,alb:albedo,dd:depth"})
+        self.aov = mi.load_dict({"type": "aov", "aovs": GT_AOVS_NORMAL_MAPPED if normal_maps else GT_AOVS})
         self.aov2 = mi.load_dict({"type": "aov", "aovs": "alb:albedo,dd:depth"})
         self._sensors: dict[tuple, object] = {}
         self._scenes: dict[str, tuple] = {}  # kind -> (scene, params)
@@ -299,7 +405,7 @@ class BasisRenderer:
         ph = self._placeholder()
         desc = {"type": "scene"}
         for k in range(self.slots):
-            bsdf = _params_as_albedo(mi, ph) if kind == "params" else _principled(mi, ph)
+            bsdf = _params_as_albedo(mi, ph) if kind == "params" else _principled(mi, ph, self.normal_maps)
             desc[f"shape_{k:02d}"] = _make_mesh(mi, f"shape_{k:02d}", ph, bsdf)
         if emitter is not None:
             desc["light_00"] = emitter
@@ -308,8 +414,10 @@ class BasisRenderer:
 
     def set_objects(self, objects: list[RenderObject]) -> None:
         """The shapes of the next synthetic scene (at most ``slots``; more rebuild the scenes with more slots)."""
-        if len(objects) > self.slots:
-            self.slots = len(objects)
+        if len(objects) > self.slots or (any(o.normal_map is not None for o in objects) and not self.normal_maps):
+            self.slots = max(self.slots, len(objects))
+            self.normal_maps = self.normal_maps or any(o.normal_map is not None for o in objects)
+            self.aov = self.mi.load_dict({"type": "aov", "aovs": GT_AOVS_NORMAL_MAPPED if self.normal_maps else GT_AOVS})
             self._scenes.clear()
         self._objects = list(objects)
         self._version += 1
@@ -335,13 +443,15 @@ class BasisRenderer:
             # the texture repeat goes into the uv (a texture's to_uv is a literal in the kernel: one kernel per value)
             put(f"{name}.vertex_texcoords", np.asarray(g.uv, np.float32) * np.float32(o.uv_scale), np.float32)
             if kind == "params":
-                tex = np.stack([o.roughness, o.metallic,
-                                np.full_like(o.roughness, 1.0 if o.is_background else 0.0)], -1)
-                maps = {"bsdf.brdf_0.reflectance": tex}
+                maps = {"bsdf.brdf_0.reflectance": _params_tex(o, k)}
             else:
-                maps = {"bsdf.brdf_0.base_color": o.base_color, "bsdf.brdf_0.roughness": o.roughness[..., None],
-                        "bsdf.brdf_0.metallic": o.metallic[..., None]}
-                params[f"{name}.bsdf.brdf_0.specular"] = type(params[f"{name}.bsdf.brdf_0.specular"])(float(o.specular))
+                pre = "bsdf.brdf_0.nested_bsdf" if self.normal_maps else "bsdf.brdf_0"
+                maps = {f"{pre}.base_color": o.base_color, f"{pre}.roughness": o.roughness[..., None],
+                        f"{pre}.metallic": o.metallic[..., None]}
+                if self.normal_maps:
+                    maps["bsdf.brdf_0.normalmap"] = (o.normal_map if o.normal_map is not None
+                                                     else np.broadcast_to(FLAT_NORMAL, (4, 4, 3)))
+                params[f"{name}.{pre}.specular"] = type(params[f"{name}.{pre}.specular"])(float(o.specular))
             for key, arr in maps.items():
                 params[f"{name}.{key}.data"] = mi.TensorXf(np.ascontiguousarray(arr, np.float32))
         params.update()
@@ -374,7 +484,12 @@ class BasisRenderer:
         """Normals, masks and BRDF maps from two one-sample (pixel centre) AOV passes (as SceneRenderer's)."""
         if not self._scenes:
             raise RuntimeError("render a light first")
-        kind = next(k for k in self._scenes if k != "params")
+        kinds = [k for k in self._scenes if k not in ("params", "rectangle")]  # not the area light's extra shape
+        kind = kinds[0] if kinds else "directional"
+        if kind not in self._scenes:
+            from scenes.lights import DirectionalLight
+
+            self._scene_for(DirectionalLight(), {})
         self._sync(kind)
         sensor = self._sensor(1, seed, centre=True)
         a = render_array(self._scenes[kind][0], self.aov, spp=1, seed=seed, sensor=sensor)
@@ -382,6 +497,8 @@ class BasisRenderer:
             self._scenes["params"] = self._new_scene("params", None)
         self._sync("params")
         b = render_array(self._scenes["params"][0], self.aov2, spp=1, seed=seed, sensor=sensor)
+        if self.normal_maps:
+            a = _normal_mapped(a, b, self._objects, uv_scaled=True)
         return _ground_truth_from(a, b)
 
 
