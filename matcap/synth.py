@@ -79,7 +79,7 @@ class AssetCache:
         self._meshes: dict = {}
         self._env: dict = {}
         self._tex: dict = {}
-        self.renderers: dict = {}  # resolution -> renderers.synth.BasisRenderer (Mitsuba scenes reused per scene)
+        self.renderers: dict = {}  # (resolution, data version) -> renderers.synth.BasisRenderer (reused per scene)
 
     def mesh(self, name: str):
         if name not in self._meshes:
@@ -196,9 +196,11 @@ def render_spec(spec: SceneSpec, cache: AssetCache, spp: int, persistent: bool =
     objects = build_render_objects(spec, meshes, sets)
     renderer = None
     if persistent and not _mitsuba_variant().startswith("scalar"):
-        renderer = cache.renderers.get(spec.resolution)
-        if renderer is None:
-            renderer = cache.renderers[spec.resolution] = BasisRenderer(spec.resolution)
+        key = (spec.resolution, spec.data_version)
+        renderer = cache.renderers.get(key)
+        if renderer is None:  # v2: up to 6 objects + an occluder + a background, normal maps
+            v2 = spec.data_version >= 2
+            renderer = cache.renderers[key] = BasisRenderer(spec.resolution, slots=8 if v2 else 5, normal_maps=v2)
     r = render_scene(objects, spec.lights(), envs, spec.resolution, spp=spp, seed=spec.render_seed,
                      renderer=renderer, persistent=persistent)
     raw = np.stack([combine(r.basis, im.weights) for im in spec.images])

@@ -30,6 +30,7 @@ def pool(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow  # renders 5 tiny scenes in two processes (about a minute on 2 cores)
 def test_pool_blocks_and_resume(pool):
     packs = sorted(p.name for p in (pool / "packs").glob("*.npz"))
     assert packs == ["train_0000.npz", "train_0001.npz", "val.npz"]

@@ -143,4 +143,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:  # Ctrl-C / SIGTERM (matcap synth turns it into this): nothing half-written is kept
+        print("make_pool: interrupted; run the same command again to resume", file=sys.stderr)
+        sys.exit(130)
