@@ -140,3 +140,32 @@ def test_v2_dataset_pack_and_loader(tmp_path):
     batch = draw_batch(SceneCache(scenes), SampleSpec(resolution=32, pixel_samples=64), 3, 0, 0)
     assert batch["light_known"].all() and batch["light_vec"].shape[:2] == batch["images"].shape[:2]
     assert (np.linalg.norm(batch["light_vec"], axis=-1) > 0).all()
+
+
+def test_light_vectors_turn_with_the_dihedral_augmentation():
+    """A sample's light vectors turn with its images: the symmetry that maps the plain sample's normals onto the
+    augmented one maps its light vectors too (and with the light, the shading)."""
+    from networks.data import SampleSpec, _turn_vectors, draw_sample
+    from networks.dihedral import DIHEDRAL, transform_map
+
+    rng0 = np.random.default_rng(0)
+    n = rng0.normal(size=(16, 16, 3)).astype(np.float32)
+    n[..., 2] = np.abs(n[..., 2]) + 0.5
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    basis = rng0.uniform(0, 1, (3, 16, 16, 3)).astype(np.float16)
+    scene = {"basis": basis, "basis_kind": np.array(["env", "directional", "spot"]), "images": basis[[0, 1, 2] * 3 + [0]],
+             "normal": n.astype(np.float16), "mask": np.ones((16, 16), bool),
+             "base_color": np.full((16, 16, 3), 0.5, np.float16), "roughness": np.ones((16, 16), np.float16),
+             "metallic": np.zeros((16, 16), np.float16), "data_version": np.array(2),
+             "basis_light_vec": rng0.normal(size=(3, 3)).astype(np.float32),
+             "light_vec": rng0.normal(size=(10, 3)).astype(np.float32)}
+    turned = 0
+    for seed in range(16):
+        plain = draw_sample(scene, SampleSpec(resolution=16, pixel_samples=8, dihedral=False, min_crop=1.0),
+                            np.random.default_rng(seed))
+        aug = draw_sample(scene, SampleSpec(resolution=16, pixel_samples=8, min_crop=1.0), np.random.default_rng(seed))
+        assert plain["light_known"] and np.linalg.norm(plain["light_vec"], axis=1).min() > 0
+        t = next(t for t in DIHEDRAL if np.allclose(transform_map(plain["normal"], t, normal=True), aug["normal"]))
+        np.testing.assert_allclose(aug["light_vec"], _turn_vectors(plain["light_vec"], t), atol=1e-6)
+        turned += t != DIHEDRAL[0]
+    assert turned >= 8
