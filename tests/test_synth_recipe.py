@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _pool(out: Path, *extra: str) -> str:
     cmd = [sys.executable, str(REPO / "docs/recipes/make_pool.py"), "--out", str(out), "--scenes", "3", "--block", "2",
-           "--resolution", "24", "--spp", "2", "--val", "2", *extra]
+           "--resolution", "128", "--spp", "1", "--val", "2", *extra]  # training needs 128-multiples
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     return subprocess.run(cmd, capture_output=True, text=True, env=env, check=True, cwd=REPO).stdout
 

@@ -133,4 +133,5 @@ for r in n b; do
 done
 ls -la "$OUTDIR"
 echo "call $call done in $(( $(date +%s) - T0 )) s"
+ls "$OUTDIR"/n_last.safetensors "$OUTDIR"/b_last.safetensors > /dev/null 2>&1 || { echo "gpu_v2: no weights to return (see $R/run_*.out)"; exit 1; }
 exit 0
