@@ -7,6 +7,11 @@ Reports wall-clock scenes/hour and a CPU-time estimate (process CPU seconds / av
 figure to trust when other jobs share the machine. The first scene (kernel compilation, asset loading) is
 timed separately. Nothing is kept: the dataset goes to a temporary folder.
 
+``--compare N`` renders and writes N train-split scenes both ways, interleaved scene by scene so that a shared
+machine's load hits both alike: fresh Mitsuba scenes per scene and per kind of light (before session 8) against
+one set of persistent Mitsuba scenes whose buffers are overwritten (`matcap synth` now). It prints CPU and wall
+seconds per scene and their ratio, and checks that both ways give the same images.
+
 ``--basis-ab N`` times only the basis renders of N train-split scenes, three rounds each way: one loaded Mitsuba
 scene per kind of light whose emitter is updated between lights (what `matcap synth` does) against a freshly
 loaded scene per light (what it did before session 4).
@@ -57,6 +62,43 @@ def basis_ab(scenes: int, resolution: int, spp: int, assets: str | None, seed: i
     print(f"| mean | {a:.2f} s | {b:.2f} s ({1 - a / b:.0%} saved) |")
 
 
+def compare(scenes: int, resolution: int, spp: int, assets: str | None, seed: int, data_version: int = 1) -> None:
+    import numpy as np
+
+    from matcap.synth import AssetCache, catalog_from_dir, render_spec, write_scene
+    from scenes.synth_spec import generate_scene
+
+    catalog = catalog_from_dir(assets)
+    caches = {False: AssetCache(assets), True: AssetCache(assets)}
+    times = {False: [], True: []}
+    worst = 0.0
+    kwargs = {} if data_version == 1 else {"data_version": data_version}
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(scenes + 1):  # scene 0 warms up both ways (kernel compilation, asset loading)
+            spec = generate_scene(seed, "train", k, resolution, catalog, 0, **kwargs)
+            results = {}
+            for persistent in ((False, True) if k % 2 else (True, False)):
+                w0, c0 = time.perf_counter(), time.process_time()
+                results[persistent] = render_spec(spec, caches[persistent], spp, persistent=persistent)
+                write_scene(results[persistent], Path(tmp) / f"{k}_{persistent}")
+                if k:
+                    times[persistent].append((time.process_time() - c0, time.perf_counter() - w0))
+            a, b = results[True].render.basis, results[False].render.basis
+            worst = max(worst, float(np.abs(a - b).max()))
+    cores = len(os.sched_getaffinity(0))
+    print(f"| {scenes} train scenes at {resolution}², {spp} spp, 10 images + ground truth, written | CPU s/scene | "
+          f"wall s/scene | scenes/h ({cores} cores, from CPU time) |")
+    print("|---|---:|---:|---:|")
+    rows = {}
+    for persistent, label in ((False, "fresh Mitsuba scenes (before)"), (True, "persistent scenes (now)")):
+        cpu = sum(t[0] for t in times[persistent]) / scenes
+        wall = sum(t[1] for t in times[persistent]) / scenes
+        rows[persistent] = (cpu, wall)
+        print(f"| {label} | {cpu:.2f} | {wall:.2f} | {3600 / (cpu / cores):.0f} |")
+    print(f"| ratio before / now | {rows[False][0] / rows[True][0]:.2f}x | {rows[False][1] / rows[True][1]:.2f}x | |")
+    print(f"largest basis-render difference between the two ways: {worst:.2e}; load average {os.getloadavg()[0]:.1f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--scenes", type=int, default=8)
@@ -65,7 +107,12 @@ def main() -> None:
     ap.add_argument("--assets", default=None)
     ap.add_argument("--seed", type=int, default=123)
     ap.add_argument("--basis-ab", type=int, metavar="N", help="time basis renders only: reused vs fresh scenes")
+    ap.add_argument("--compare", type=int, metavar="N", help="whole scenes: fresh vs persistent Mitsuba scenes")
+    ap.add_argument("--data-version", type=int, default=1, help="scene generator version for --compare")
     args = ap.parse_args()
+    if args.compare:
+        compare(args.compare, args.resolution, args.spp, args.assets, args.seed, args.data_version)
+        return
     if args.basis_ab:
         basis_ab(args.basis_ab, args.resolution, args.spp, args.assets, args.seed)
         return

@@ -24,7 +24,7 @@ import numpy as np
 from matcap.errors import MatcapError
 from scenes.lights import EnvironmentLight
 from scenes.synth_spec import (
-    GENERATOR_VERSION,
+    GENERATOR_VERSIONS,
     NUM_IMAGES,
     SPLITS,
     AssetCatalog,
@@ -64,9 +64,10 @@ def catalog_from_dir(assets: str | os.PathLike | None) -> AssetCatalog:
     envs = sorted(f"envmaps/{p.name}" for p in (root / "envmaps").glob("*") if p.suffix.lower() in (".exr", ".hdr"))
     texs = sorted(f"textures/{p.name}" for p in (root / "textures").glob("*")
                   if p.is_dir() and any(p.glob("basecolor.*")))
+    nmaps = [t for t in texs if any((root / t).glob("normal_gl.*"))]
     if not (meshes or envs or texs):
         raise MatcapError(f"--assets {assets}: no meshes/, envmaps/ or textures/ with usable files")
-    return AssetCatalog(meshes, envs, texs)
+    return AssetCatalog(meshes, envs, texs, nmaps)
 
 
 class AssetCache:
@@ -77,6 +78,7 @@ class AssetCache:
         self._meshes: dict = {}
         self._env: dict = {}
         self._tex: dict = {}
+        self.renderers: dict = {}  # (resolution, data version) -> renderers.synth.BasisRenderer (reused per scene)
 
     def mesh(self, name: str):
         if name not in self._meshes:
@@ -130,7 +132,7 @@ class AssetCache:
                 arr, _ = to_linear_float(read_image(files[0]), decode_srgb_8bit=srgb)
                 return cv2.resize(arr, (TEXTURE_SIZE, TEXTURE_SIZE), interpolation=cv2.INTER_AREA)
 
-            out = {"basecolor": load("basecolor", True), "roughness": None}
+            out = {"basecolor": load("basecolor", True), "roughness": None, "normal": load("normal_gl", False)}
             packed = load("arm", False)
             packed = packed if packed is not None else load("orm", False)
             if packed is not None:
@@ -149,7 +151,7 @@ class AssetCache:
         sets = {}
         for o in objs:
             m = o.material
-            for t in (m.color_tex, m.roughness_tex, m.metallic_tex):
+            for t in (m.color_tex, m.roughness_tex, m.metallic_tex, m.normal_tex):
                 if t is not None and t.pattern == "pbr":
                     sets[t.pbr_set] = self.texture_set(t.pbr_set)
         envs = {b.source: self.envmap(b.source) for b in spec.lights() if isinstance(b, EnvironmentLight)}
@@ -166,6 +168,7 @@ class SceneResult:
     images: np.ndarray  # (10, H, W, 3) exposed, clipped
     lights: list[dict]
     problems: list[str] = field(default_factory=list)
+    basis_vectors: np.ndarray | None = None  # (B, 3) vector irradiance of each basis light at the origin
 
 
 def combine(basis: np.ndarray, weights) -> np.ndarray:
@@ -176,21 +179,50 @@ def combine(basis: np.ndarray, weights) -> np.ndarray:
     return np.tensordot(w, basis, axes=1).astype(np.float32)
 
 
-def render_spec(spec: SceneSpec, cache: AssetCache, spp: int) -> SceneResult:
-    from renderers.synth import render_scene
+def _mitsuba_variant() -> str:
+    from renderers.variant import choose_variant
+
+    return choose_variant()
+
+
+def render_spec(spec: SceneSpec, cache: AssetCache, spp: int, persistent: bool = True) -> SceneResult:
+    """Render one scene. ``persistent``: through the cache's :class:`renderers.synth.BasisRenderer`, whose Mitsuba
+    scenes are reused for every scene of the process (``False``: fresh Mitsuba scenes, as before session 8)."""
+    from renderers.synth import BasisRenderer, render_scene
     from scenes.synth_build import auto_exposure, build_render_objects, check_scene
 
     meshes, sets, envs = cache.for_spec(spec)
     objects = build_render_objects(spec, meshes, sets)
-    r = render_scene(objects, spec.lights(), envs, spec.resolution, spp=spp, seed=spec.render_seed)
+    renderer = None
+    if persistent and not _mitsuba_variant().startswith("scalar"):
+        key = (spec.resolution, spec.data_version)
+        renderer = cache.renderers.get(key)
+        if renderer is None:  # v2: up to 6 objects + an occluder + a background, normal maps
+            v2 = spec.data_version >= 2
+            renderer = cache.renderers[key] = BasisRenderer(spec.resolution, slots=8 if v2 else 5, normal_maps=v2)
+    r = render_scene(objects, spec.lights(), envs, spec.resolution, spp=spp, seed=spec.render_seed,
+                     renderer=renderer, persistent=persistent)
     raw = np.stack([combine(r.basis, im.weights) for im in spec.images])
     exposures = [auto_exposure(x, r.mask) for x in raw]
     images = np.stack([np.clip(x * e, 0, 1) for x, e in zip(raw, exposures)]).astype(np.float32)
-    lights = [{"image": f"{k:03d}.png", "config": im.config, "weights": im.weights, "exposure": float(e)}
-              for k, (im, e) in enumerate(zip(spec.images, exposures))]
+    vectors = basis_light_vectors(spec, envs)
+    lights = []
+    for k, (im, e) in enumerate(zip(spec.images, exposures)):
+        entry = {"image": f"{k:03d}.png", "config": im.config, "weights": im.weights, "exposure": float(e)}
+        if spec.data_version >= 2:  # per-image light ground truth (a light-alignment loss reads it)
+            entry["light_vector"] = [float(x) for x in float(e) * np.asarray(im.weights, np.float64) @ vectors]
+        lights.append(entry)
     problems = check_scene(images, r.normal, r.mask, r.object_mask, raw, [im.config for im in spec.images],
                            r.stats, r.stats.get("mask_agreement", 1.0))
-    return SceneResult(spec, r, images, lights, problems)
+    return SceneResult(spec, r, images, lights, problems, vectors)
+
+
+def basis_light_vectors(spec: SceneSpec, envs: dict[str, np.ndarray]) -> np.ndarray:
+    """(B, 3) float32: :func:`scenes.lights.light_vector` of each basis light (env maps as rendered)."""
+    from scenes.lights import light_vector
+
+    return np.stack([light_vector(b, envs.get(b.source) if isinstance(b, EnvironmentLight) else None)
+                     for b in spec.lights()]).astype(np.float32)
 
 
 def write_scene(result: SceneResult, folder: Path) -> None:
@@ -202,8 +234,17 @@ def write_scene(result: SceneResult, folder: Path) -> None:
     spec_d = spec.to_dict()
     spec_d["ground_truth_stats"] = r.stats
     formats.write_json(folder / "spec.json", spec_d)
-    formats.write_json(folder / "lights.json", {"basis": spec.basis, "basis_kind": spec.basis_kind,
-                                                "images": result.lights})
+    lights = {"basis": spec.basis, "basis_kind": spec.basis_kind, "images": result.lights}
+    if spec.data_version >= 2:
+        lights["basis_light_vector"] = result.basis_vectors.tolist()
+        lights["light_vector"] = ("vector irradiance at the scene origin (camera space, toward the light; length = "
+                                  "irradiance, mean over RGB), of the image as stored: exposure * sum_b w_b * "
+                                  "basis_light_vector[b]")
+    formats.write_json(folder / "lights.json", lights)
+    extra = {}
+    if spec.data_version >= 2:
+        extra = {"data_version": np.array(spec.data_version), "basis_light_vec": result.basis_vectors,
+                 "light_vec": np.array([x["light_vector"] for x in result.lights], np.float32)}
     for k, img in enumerate(result.images):
         formats.write_scene_image(folder, k, img)
     formats.write_scene_maps(folder, normal=r.normal, mask=r.mask, base_color=r.base_color,
@@ -213,15 +254,15 @@ def write_scene(result: SceneResult, folder: Path) -> None:
              base_color=r.base_color.astype(np.float16), roughness=r.roughness.astype(np.float16),
              metallic=r.metallic.astype(np.float16), images=result.images.astype(np.float16),
              weights=np.array([im.weights for im in spec.images], np.float32),
-             exposure=np.array([x["exposure"] for x in result.lights], np.float32))
+             exposure=np.array([x["exposure"] for x in result.lights], np.float32), **extra)
 
 
 # ----------------------------------------------------------------------------------------------- dataset
 
 
-def _params(split, resolution, seed, scenes, spp, assets_used):
+def _params(split, resolution, seed, scenes, spp, assets_used, data_version=1):
     return {"split": split, "resolution": int(resolution), "seed": int(seed), "num_scenes": int(scenes),
-            "spp": int(spp), "generator_version": GENERATOR_VERSION, "assets": assets_used}
+            "spp": int(spp), "generator_version": GENERATOR_VERSIONS[data_version], "assets": assets_used}
 
 
 def _check_params(out: Path, params: dict) -> None:
@@ -351,8 +392,14 @@ def _alive(pid: int) -> bool:
 
 
 def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str | None = None,
-              assets=None, split: str = "train", spp: int = 16, progress: bool = True) -> dict:
-    """Generate (this shard's part of) a dataset. Returns {"rendered", "skipped", "failed", "seconds"}."""
+              assets=None, split: str = "train", spp: int = 16, progress: bool = True, data_version: int = 1) -> dict:
+    """Generate (this shard's part of) a dataset. Returns {"rendered", "skipped", "failed", "seconds"}.
+
+    ``data_version`` 1 draws the scenes it always drew for a seed; 2 is data v2 (scenes.synth_spec.generate_scene_v2).
+    """
+    if data_version not in GENERATOR_VERSIONS:
+        raise MatcapError(f"--data-version must be one of {', '.join(map(str, sorted(GENERATOR_VERSIONS)))}, "
+                          f"got {data_version}")
     if split not in SPLITS:
         raise MatcapError(f"--split must be train or test, got {split!r}")
     if scenes < 1:
@@ -375,7 +422,7 @@ def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str
     out.mkdir(parents=True, exist_ok=True)
     assets_used = None if assets is None else {"meshes": len(catalog.meshes), "envmaps": len(catalog.envmaps),
                                                "textures": len(catalog.textures)}
-    _check_params(out, _params(split, resolution, seed, scenes, spp, assets_used))
+    _check_params(out, _params(split, resolution, seed, scenes, spp, assets_used, data_version))
     with _term_as_interrupt(), ShardLock(out, i, n):  # one process per shard
         _remove_stale_tmp(out)
         cache = AssetCache(assets)
@@ -393,7 +440,7 @@ def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str
                 final = out / f"scene_{k:06d}"
                 done = False
                 for attempt in range(MAX_ATTEMPTS):
-                    spec = generate_scene(seed, split, k, resolution, catalog, attempt)
+                    spec = generate_scene(seed, split, k, resolution, catalog, attempt, data_version)
                     result = render_spec(spec, cache, spp)
                     if result.problems:
                         _log_failure(out, spec, result.problems)

@@ -4,6 +4,11 @@ A scene folder holds ``data.npz`` with ``basis`` (B, H, W, 3) float16 linear ren
 ``basis_kind`` (B,) ("env" / "directional" / "point"), ``images`` (10, H, W, 3) float16, ``normal`` (H, W, 3),
 ``mask`` (H, W) bool, ``base_color`` (H, W, 3), ``roughness`` (H, W), ``metallic`` (H, W).
 
+Data v2 scenes (``matcap synth --data-version 2``) add basis kinds "spot" and "area", ``data_version`` (2),
+``basis_light_vec`` (B, 3) the vector irradiance of each basis light at the scene origin and ``light_vec``
+(10, 3) that of each stored image (exposure included); samples then carry ``light_vec`` (K, 3) for every image
+(zeros, with ``light_known`` False, for v1 scenes) so a light-alignment loss can use it.
+
 Every random choice of a sample comes from ``numpy.random.default_rng([seed, step, rank, slot])``, so the data
 order is a pure function of the step: training resumes bit-for-bit without saving loader state, and
 data-parallel ranks draw different samples without a sampler.
@@ -18,8 +23,12 @@ import numpy as np
 
 from networks.dihedral import DIHEDRAL, transform_map
 
-#: The five light configurations of PS-Mix: (a) env, (b) directional, (c) point, (d) a+b, (e) a+c.
-CONFIGURATIONS = (("env",), ("directional",), ("point",), ("env", "directional"), ("env", "point"))
+#: The five light configurations of PS-Mix: (a) env, (b) directional, (c) point, (d) a+b, (e) a+c; data v2 adds
+#: spot, area, env+spot, env+area (used only where a scene has those kinds, so v1 draws are unchanged).
+CONFIGURATIONS = (("env",), ("directional",), ("point",), ("env", "directional"), ("env", "point"),
+                  ("spot",), ("area",), ("env", "spot"), ("env", "area"))
+#: Data v2: probability that a sample's fresh images share one strong fixed light plus a weak moving one.
+FIXED_MOVING_PROB = 0.15
 
 
 def list_scenes(root: str | Path) -> list[Path]:
@@ -67,19 +76,52 @@ class SampleSpec:
     maps (normals turned with them). Exact for an orthographic camera: it is the mirrored / rotated scene."""
 
 
-def _combine(basis: np.ndarray, kinds: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One image as a random non-negative combination of basis renders following a PS-Mix configuration."""
+def _combine(basis: np.ndarray, kinds: np.ndarray, rng: np.random.Generator, vectors: np.ndarray | None = None):
+    """One image as a random non-negative combination of basis renders following a PS-Mix configuration.
+    Returns the image, and its light vector when ``vectors`` (B, 3) is given (else None)."""
     available = set(kinds.tolist())
     configs = [c for c in CONFIGURATIONS if set(c) <= available] or [(kinds[0],)]
     config = configs[rng.integers(len(configs))]
     out = np.zeros(basis.shape[1:], dtype=np.float32)
+    vec = None if vectors is None else np.zeros(3, np.float32)
     for kind in config:
         idx = np.flatnonzero(kinds == kind)
         j = idx[rng.integers(len(idx))]
         weight = rng.uniform(0.3, 1.0) if kind == "env" else rng.uniform(0.5, 2.0)
         tint = rng.uniform(0.85, 1.15, size=3).astype(np.float32)  # light colour
         out += basis[j].astype(np.float32) * (weight * tint)
-    return out
+        if vec is not None:
+            vec += vectors[j] * np.float32(weight * tint.mean())
+    return out, vec
+
+
+def _fixed_moving(basis: np.ndarray, kinds: np.ndarray, vectors: np.ndarray, k: int, rng: np.random.Generator):
+    """Data v2: ``k`` images under one strong fixed light plus a weak light that moves from image to image."""
+    fixed_pool = np.flatnonzero(np.isin(kinds, ["env", "directional", "area"]))
+    j = int(fixed_pool[rng.integers(len(fixed_pool))])
+    movers = np.flatnonzero(np.isin(kinds, ["directional", "point", "spot"]) & (np.arange(len(kinds)) != j))
+    strong = rng.uniform(0.8, 1.5) if kinds[j] == "env" else rng.uniform(1.0, 2.0)
+    images, vecs = [], []
+    for _ in range(k):
+        m = int(movers[rng.integers(len(movers))])
+        w = strong * rng.uniform(0.08, 0.3)
+        images.append(basis[j].astype(np.float32) * np.float32(strong) + basis[m].astype(np.float32) * np.float32(w))
+        vecs.append((vectors[j] * strong + vectors[m] * w).astype(np.float32))
+    return images, vecs
+
+
+def _turn_vectors(v: np.ndarray, t: tuple[bool, bool, bool]) -> np.ndarray:
+    """(N, 3) camera-space vectors under a symmetry of networks.dihedral (as its normal maps turn): transpose
+    maps (x, y) to (-y, -x), mirroring the columns negates x, mirroring the rows negates y."""
+    v = np.array(v, np.float32)
+    transpose, flip_c, flip_r = t
+    if transpose:
+        v = v[:, [1, 0, 2]] * np.float32([-1, -1, 1])
+    if flip_c:
+        v[:, 0] *= -1
+    if flip_r:
+        v[:, 1] *= -1
+    return v
 
 
 def _resize(arr: np.ndarray, size: int, nearest: bool = False) -> np.ndarray:
@@ -108,12 +150,23 @@ def draw_sample(scene: dict[str, np.ndarray], spec: SampleSpec, rng: np.random.G
     k = int(rng.integers(spec.min_images, spec.max_images + 1))
     basis, kinds = scene.get("basis"), scene.get("basis_kind")
     stored = scene["images"]
-    imgs = []
-    for _ in range(k):
+    vectors = scene.get("basis_light_vec")  # data v2 only
+    stored_vec = scene.get("light_vec")
+    imgs, vecs = [], []
+    kinds_s = None if kinds is None else np.asarray(kinds).astype(str)
+    if (vectors is not None and basis is not None and len(basis) and rng.random() < FIXED_MOVING_PROB
+            and np.isin(kinds_s, ["directional", "point", "spot"]).sum() >= 2):
+        imgs, vecs = _fixed_moving(basis, kinds_s, vectors.astype(np.float32), k, rng)
+    for _ in range(k - len(imgs)):
         if basis is not None and len(basis) and rng.random() < spec.fresh_combination_prob:
-            imgs.append(_combine(basis, np.asarray(kinds).astype(str), rng))
+            image, vec = _combine(basis, kinds_s, rng, None if vectors is None else vectors.astype(np.float32))
+            imgs.append(image)
         else:
-            imgs.append(stored[rng.integers(len(stored))].astype(np.float32) * rng.uniform(0.5, 1.5))
+            j = rng.integers(len(stored))
+            gain = rng.uniform(0.5, 1.5)
+            imgs.append(stored[j].astype(np.float32) * gain)
+            vec = None if stored_vec is None else stored_vec[j].astype(np.float32) * np.float32(gain)
+        vecs.append(vec)
     h, w = scene["mask"].shape
     side = int(round(min(h, w) * rng.uniform(spec.min_crop, 1.0)))
     y0, x0 = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
@@ -133,11 +186,17 @@ def draw_sample(scene: dict[str, np.ndarray], spec: SampleSpec, rng: np.random.G
         "base_color": _resize(np.ascontiguousarray(scene["base_color"][sl].astype(np.float32)), R, nearest=True),
         "roughness": _resize(np.ascontiguousarray(scene["roughness"][sl].astype(np.float32)), R, nearest=True),
         "metallic": _resize(np.ascontiguousarray(scene["metallic"][sl].astype(np.float32)), R, nearest=True),
+        "light_vec": np.stack([np.zeros(3, np.float32) if v is None else v for v in vecs]).astype(np.float32),
+        "light_known": np.array(vectors is not None),
     }
     if spec.dihedral:
         t = DIHEDRAL[int(rng.integers(len(DIHEDRAL)))]
         for key, value in out.items():
-            if key == "images":  # (K, 3, R, R): move the plane axes first, transform, move back
+            if key == "light_known":
+                continue
+            if key == "light_vec":  # (K, 3) camera-space vectors turn with the image plane
+                out[key] = _turn_vectors(value, t)
+            elif key == "images":  # (K, 3, R, R): move the plane axes first, transform, move back
                 out[key] = np.ascontiguousarray(transform_map(value.transpose(2, 3, 0, 1), t).transpose(2, 3, 0, 1))
             else:
                 out[key] = transform_map(value, t, normal=(key == "normal"))

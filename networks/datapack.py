@@ -1,7 +1,7 @@
 """Compact, portable packs of a `matcap synth` dataset, to move training data to another machine (a GPU box
 with a small upload limit, say) and unpack it there into the ordinary layout that training reads.
 
-    python -m networks.datapack pack DATA OUT_DIR [--max-mb 40] [--start N] [--count N] [--quality 95]
+    python -m networks.datapack pack DATA OUT_DIR [--max-mb 40] [--start N] [--count N] [--quality 95] [--prefix P]
     python -m networks.datapack unpack PACK.npz [PACK.npz ...] --out DATA                 # scene_*/data.npz
 
 About 8x smaller than the scenes' ``data.npz`` (~0.25 MB a scene at 128^2): the basis renders are stored as 8-bit
@@ -27,6 +27,7 @@ from scenes.atomic import atomic_path
 GAMMA = 2.2
 REQUIRED = ("basis", "basis_kind", "weights", "exposure", "normal", "mask", "object_mask", "base_color", "roughness",
             "metallic")
+V2_KEYS = ("data_version", "basis_light_vec", "light_vec")  # data v2 scenes: stored as they are
 
 
 def encode_scene(scene: dict[str, np.ndarray], quality: int = 0) -> dict[str, np.ndarray]:
@@ -55,7 +56,8 @@ def encode_scene(scene: dict[str, np.ndarray], quality: int = 0) -> dict[str, np
                   "basis_webp_offsets": np.cumsum([0] + [len(b) for b in blobs]).astype(np.int64),
                   "basis_shape": np.asarray(codes.shape, np.int64)}
     return {
-        **stored, "basis_scale": scale, "basis_kind": np.asarray(scene["basis_kind"]),
+        **stored, **{k: np.asarray(scene[k]) for k in V2_KEYS if k in scene},
+        "basis_scale": scale, "basis_kind": np.asarray(scene["basis_kind"]),
         "weights": scene["weights"].astype(np.float32), "exposure": scene["exposure"].astype(np.float32),
         "normal": unit8((scene["normal"].astype(np.float32) + 1.0) * 0.5),
         "mask": scene["mask"].astype(bool), "object_mask": scene["object_mask"].astype(bool),
@@ -89,6 +91,7 @@ def decode_scene(packed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         "roughness": (packed["roughness"] / 255.0).astype(np.float16),
         "metallic": (packed["metallic"] / 255.0).astype(np.float16),
         "images": images.astype(np.float16), "weights": packed["weights"], "exposure": packed["exposure"],
+        **{k: packed[k] for k in V2_KEYS if k in packed},
     }
 
 
@@ -99,9 +102,10 @@ def _scene_bytes(arrays: dict[str, np.ndarray]) -> bytes:
 
 
 def pack(data: str | Path, out_dir: str | Path, max_mb: float = 40.0, start: int = 0,
-         count: int | None = None, quality: int = 0) -> list[Path]:
+         count: int | None = None, quality: int = 0, prefix: str = "") -> list[Path]:
     """Pack scenes ``start .. start + count`` of a dataset (in list order) into files of at most ``max_mb``
-    (``quality``: see :func:`encode_scene`)."""
+    (``quality``: see :func:`encode_scene`). ``prefix`` goes before each scene's name in the pack (and so in the
+    folder it unpacks to): packs of several datasets then unpack side by side without replacing each other."""
     from networks.data import list_scenes
 
     scenes = list_scenes(data)[start:None if count is None else start + count]
@@ -132,7 +136,7 @@ def pack(data: str | Path, out_dir: str | Path, max_mb: float = 40.0, start: int
         blob = _scene_bytes({**arrays, "lighting_group": np.asarray(group)})
         if current and size + len(blob) > max_mb * 1e6:
             flush()
-        current[path.name] = blob
+        current[prefix + path.name] = blob
         size += len(blob)
     flush()
     return written
@@ -168,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="start a new pack before one would exceed this many MB (default 40)")
     a.add_argument("--start", type=int, default=0, help="first scene to pack, in the dataset's order (default 0)")
     a.add_argument("--count", type=int, default=None, help="pack at most this many scenes (default: all from --start)")
+    a.add_argument("--prefix", default="", help="put this before every scene name (unpack several datasets side by side)")
     a.add_argument("--quality", type=int, default=0,
                    help="store basis renders as lossy WebP of this quality (1-100; ~3x smaller at 95); 0 = lossless")
     b = sub.add_parser("unpack", help="unpack packs into a dataset folder training reads")
@@ -176,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         if args.cmd == "pack":
-            for path in pack(args.data, args.out_dir, args.max_mb, args.start, args.count, args.quality):
+            for path in pack(args.data, args.out_dir, args.max_mb, args.start, args.count, args.quality, args.prefix):
                 print(f"{path} {path.stat().st_size / 1e6:.1f} MB")
         else:
             print(f"unpacked {unpack(args.packs, args.out)} scenes into {args.out}")

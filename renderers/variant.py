@@ -77,19 +77,22 @@ def interrupted_by(exc: BaseException) -> bool:
     return False
 
 
-def render_array(scene, integrator=None, *, spp: int, seed: int = 0):
+def render_array(scene, integrator=None, *, spp: int, seed: int = 0, sensor=None):
     """``mi.render`` evaluated into a float32 numpy array (H, W, C); Ctrl-C raises ``KeyboardInterrupt``.
 
     During a render Mitsuba takes SIGINT itself: it cancels the integrator, logs "winding down" and returns a
     partially rendered image, and Python never sees the interrupt. A partial image must not be used (or saved as
     training data), so when the integrator reports that it was cancelled this raises ``KeyboardInterrupt``.
+    ``sensor``: render through this sensor instead of the scene's own.
     """
     import mitsuba as mi
     import numpy as np
 
     integrator = integrator if integrator is not None else scene.integrator()
     try:
-        image = np.array(mi.render(scene, integrator=integrator, spp=int(spp), seed=int(seed)), dtype=np.float32)
+        kwargs = {} if sensor is None else {"sensor": sensor}
+        image = np.array(mi.render(scene, integrator=integrator, spp=int(spp), seed=int(seed), **kwargs),
+                         dtype=np.float32)
     except RuntimeError as exc:
         if interrupted_by(exc):  # a signal handler raised while Dr.Jit ran Python code: Dr.Jit wraps the interrupt
             raise KeyboardInterrupt("rendering interrupted") from exc

@@ -24,6 +24,7 @@ class RenderObject:
     specular: float
     uv_scale: float
     is_background: bool = False
+    normal_map: np.ndarray | None = None  # (S, S, 3) tangent-space normals encoded (n + 1) / 2, OpenGL (+y = +v)
 
 
 def normalise_mesh(vertices: np.ndarray) -> np.ndarray:
@@ -56,7 +57,59 @@ def object_geometry(obj: ObjectSpec, mesh: P.Geometry | None = None) -> P.Geomet
         g = mesh
     else:
         raise ValueError(f"unknown shape {obj.shape!r}")
+    if p.get("disp_amp"):
+        g = displace(g, p["disp_amp"], int(p["disp_seed"]), p["disp_freq"])
     return g.transformed(np.asarray(obj.rotation), obj.scale, obj.position)
+
+
+def _sample(tex: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear, wrapped lookup of an (S, S) map at (N, 2) uv (row 0 at v = 0)."""
+    s = tex.shape[0]
+    x, y = (uv[:, 0] % 1.0) * s - 0.5, (uv[:, 1] % 1.0) * s - 0.5
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    x0, y0, x1, y1 = x0 % s, y0 % s, (x0 + 1) % s, (y0 + 1) % s
+    return (tex[y0, x0] * (1 - fx) * (1 - fy) + tex[y0, x1] * fx * (1 - fy) + tex[y1, x0] * (1 - fx) * fy
+            + tex[y1, x1] * fx * fy)
+
+
+def displace(g: P.Geometry, amplitude: float, seed: int, freq: float) -> P.Geometry:
+    """Data v2 relief: vertices moved along their normals by ``amplitude`` x a smooth noise height (in [-0.5, 0.5]
+    of the unit-ball object) looked up at their uv; normals recomputed from the displaced surface."""
+    if g.normals is None:
+        g = P.Geometry(g.vertices, g.faces, P.smooth_normals(g.vertices, g.faces), g.uv)
+    h = P.pattern("noise", seed, 128, freq, 0.0)
+    d = (_sample(h, np.asarray(g.uv, np.float64)) - 0.5) * amplitude
+    v = (g.vertices + g.normals * d[:, None]).astype(np.float32)
+    return P.Geometry(v, g.faces, P.smooth_normals(v, g.faces), g.uv)
+
+
+def normal_map(mat: MaterialSpec, pbr_sets: dict | None = None, size: int = TEXTURE_SIZE) -> np.ndarray | None:
+    """(S, S, 3) tangent-space normal map of a material, encoded (n + 1) / 2 (OpenGL: +y along +v), or None.
+
+    A PBR set's ``normal`` map, or the relief of a procedural pattern taken as a height field; tangent x and y
+    are scaled by ``normal_strength`` and the normal renormalised."""
+    tex = mat.normal_tex
+    if tex is None:
+        return None
+    if tex.pattern == "pbr":
+        sets = pbr_sets or {}
+        if tex.pbr_set not in sets or sets[tex.pbr_set].get("normal") is None:
+            raise ValueError(f"texture set {tex.pbr_set!r} has no normal map loaded")
+        n = np.asarray(sets[tex.pbr_set]["normal"], np.float32) * 2 - 1
+        if n.shape[0] != size:
+            n = n[:: max(1, n.shape[0] // size), :: max(1, n.shape[1] // size)][:size, :size]
+    else:
+        h = P.pattern(tex.pattern, tex.seed, size, tex.freq, tex.angle).astype(np.float64)
+        k = 0.6 * size / (2 * np.pi * max(tex.freq, 1.0))  # slope scale: relief of about one texel per cycle
+        du = (np.roll(h, -1, axis=1) - np.roll(h, 1, axis=1)) / 2  # along u (columns)
+        dv = (np.roll(h, -1, axis=0) - np.roll(h, 1, axis=0)) / 2  # along v (rows, row 0 at v = 0)
+        n = np.stack([-du * k, -dv * k, np.ones_like(h)], -1)
+    n = np.asarray(n, np.float64).copy()
+    n[..., :2] *= mat.normal_strength
+    n[..., 2] = np.maximum(n[..., 2], 0.05)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return ((n + 1) / 2).astype(np.float32)
 
 
 def _texture(tex: TextureSpec, pbr_sets: dict, want: str, size: int) -> np.ndarray:
@@ -109,7 +162,8 @@ def build_render_objects(spec: SceneSpec, meshes: dict | None = None, pbr_sets: 
     for obj, bg in items:
         g = object_geometry(obj, meshes.get(obj.mesh) if obj.shape == "mesh" else None)
         base, rough, metal = material_maps(obj.material, pbr_sets)
-        out.append(RenderObject(g, base, rough, metal, obj.material.specular, obj.material.uv_scale, bg))
+        out.append(RenderObject(g, base, rough, metal, obj.material.specular, obj.material.uv_scale, bg,
+                                normal_map(obj.material, pbr_sets)))
     return out
 
 
@@ -159,6 +213,9 @@ def dilate(mask: np.ndarray, radius: int = 1) -> np.ndarray:
     return out
 
 
+SPOT_CONFIGS = "fh"  # images lit mostly by a narrow spot: most of the view may stay dark by design
+
+
 def check_scene(images: np.ndarray, normal: np.ndarray, mask: np.ndarray, object_mask: np.ndarray,
                 raw_images: np.ndarray | None = None, configs: list[str] | None = None,
                 stats: dict | None = None, mask_agreement: float = 1.0) -> list[str]:
@@ -196,7 +253,8 @@ def check_scene(images: np.ndarray, normal: np.ndarray, mask: np.ndarray, object
     for k, img in enumerate(images):
         fg = img[mask] if mask.any() else img.reshape(-1, 3)
         lum = fg.mean(axis=-1)
-        if lum.mean() < 0.02 or (lum > 0.01).mean() < 0.2:
+        spot = configs is not None and configs[k] in SPOT_CONFIGS
+        if (lum.mean() < (0.005 if spot else 0.02)) or (lum > 0.01).mean() < (0.03 if spot else 0.2):
             problems.append(f"image {k} is (nearly) black")
         if (fg >= 1.0).any(axis=-1).mean() > 0.05:
             problems.append(f"image {k} is saturated ({(fg >= 1.0).any(axis=-1).mean():.0%} of pixels)")
@@ -204,7 +262,7 @@ def check_scene(images: np.ndarray, normal: np.ndarray, mask: np.ndarray, object
     if raw_images is not None and configs is not None and (~grown).any():
         # Geometry check: without an environment map, nothing outside the mask may receive or emit light.
         for k, (raw, cfg) in enumerate(zip(raw_images, configs)):
-            if cfg in "bc":
+            if cfg in "bcfg":  # (m may have an environment map as its fixed light: not checked)
                 outside = raw[~grown].max()
                 inside = max(float(np.percentile(raw[mask].max(-1), 99)), 1e-8) if mask.any() else 1.0
                 if outside > 1e-3 * inside:

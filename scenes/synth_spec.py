@@ -25,18 +25,25 @@ from typing import Any
 import numpy as np
 
 from scenes.lights import (
+    AreaLight,
     DirectionalLight,
     EnvironmentLight,
     PointLight,
+    SpotLight,
     light_from_dict,
     light_to_dict,
 )
 from scenes.procedural import PATTERNS, random_rotation
 
 GENERATOR_VERSION = "synth-1"
+GENERATOR_VERSIONS = {1: "synth-1", 2: "synth-2"}  # --data-version -> generator_version (v1 draws never change)
 NUM_IMAGES = 10
 SPLITS = {"train": 1, "test": 2}
 CONFIGS = "abcde"  # a env, b directional, c point, d env+directional, e env+point
+# data v2 adds: f spot, g area, h env+spot, i env+area, m a strong fixed light plus a weak moving one
+CONFIGS_V2 = "abcdefghi"
+CONFIG_KINDS = {"a": ("env",), "b": ("directional",), "c": ("point",), "d": ("env", "directional"),
+                "e": ("env", "point"), "f": ("spot",), "g": ("area",), "h": ("env", "spot"), "i": ("env", "area")}
 TEST_GROUPS = ("directional", "environment", "directional+environment")
 PROCEDURAL_SHAPES = ("sphere", "box", "torus", "superquadric", "bumpy_sphere", "bumpy_torus")
 CATEGORIES = ("diffuse", "specular", "metallic")
@@ -54,6 +61,9 @@ HELD_OUT_MESHES = ("armadillo", "rocker-arm", "fertility", "decimated-max", "cam
 HELD_OUT_TEXTURES = ("sofa_03", "rosewood_veneer1")
 # Meshes that are not usable as solid objects (planar 2-D meshes, inconsistent winding).
 UNUSABLE_MESHES = ("alligator", "woody", "truck")
+# Texture sets whose normal maps data v2 does not use: bell_pepper is BSD-3-Clause (its notice would have to
+# travel with derived data); every other set is CC0 (see shared/data/textures/SOURCES.md).
+NO_NORMAL_MAP_TEXTURES = ("bell_pepper",)
 
 
 def _stem(name: str) -> str:
@@ -73,6 +83,7 @@ class AssetCatalog:
     meshes: list[str] = field(default_factory=list)
     envmaps: list[str] = field(default_factory=list)
     textures: list[str] = field(default_factory=list)
+    normal_maps: list[str] = field(default_factory=list)  # texture sets with a normal_gl map (data v2)
 
     def for_split(self, split: str) -> AssetCatalog:
         """Only the assets a split may use: held-out ones for test, the others for train."""
@@ -84,7 +95,9 @@ class AssetCatalog:
                 out = [n for n in out if _stem(n) not in UNUSABLE_MESHES]
             return out
 
-        return AssetCatalog(keep("meshes", self.meshes), keep("envmaps", self.envmaps), keep("textures", self.textures))
+        nmaps = [n for n in keep("textures", self.normal_maps) if _stem(n) not in NO_NORMAL_MAP_TEXTURES]
+        return AssetCatalog(keep("meshes", self.meshes), keep("envmaps", self.envmaps), keep("textures", self.textures),
+                            nmaps)
 
 
 @dataclass
@@ -115,6 +128,8 @@ class MaterialSpec:
     metallic_tex: TextureSpec | None = None
     specular: float = 0.5
     uv_scale: float = 1.0
+    normal_tex: TextureSpec | None = None  # data v2: a normal map (PBR set's normal_gl, or a pattern's relief)
+    normal_strength: float = 1.0  # tangent x, y scaled by this before renormalising
 
 
 @dataclass
@@ -150,9 +165,14 @@ class SceneSpec:
     lighting_group: str | None = None
     envmap_normalisation: str = "unit mean radiance over the sphere"
     generator_version: str = GENERATOR_VERSION
+    lighting_mode: str | None = None  # data v2 train scenes: "mixed", "fixed+moving" or "spot"
 
     @property
-    def basis_kind(self) -> list[str]:
+    def data_version(self) -> int:
+        return {v: k for k, v in GENERATOR_VERSIONS.items()}.get(self.generator_version, 1)
+
+    @property
+    def basis_kind(self) -> list[str]:  # "env", "directional", "point" (+ "spot", "area" in data v2)
         return [{"environment": "env"}.get(b["kind"], b["kind"]) for b in self.basis]
 
     def lights(self):
@@ -161,6 +181,12 @@ class SceneSpec:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["basis_kind"] = self.basis_kind
+        if d["lighting_mode"] is None:  # v1 specs are stored exactly as before
+            del d["lighting_mode"]
+        if self.data_version == 1:
+            for o in d["objects"] + ([d["background"]] if d["background"] else []):
+                o["material"].pop("normal_tex", None)
+                o["material"].pop("normal_strength", None)
         return d
 
 
@@ -170,7 +196,7 @@ def _tex_from(d):
 
 def _mat_from(d) -> MaterialSpec:
     d = dict(d)
-    for k in ("color_tex", "roughness_tex", "metallic_tex"):
+    for k in ("color_tex", "roughness_tex", "metallic_tex", "normal_tex"):
         d[k] = _tex_from(d.get(k))
     for k in ("color_a", "color_b"):
         d[k] = tuple(d[k])
@@ -187,7 +213,7 @@ def _obj_from(d) -> ObjectSpec:
 
 
 # keys a stored scene's spec.json holds besides the spec itself (derived, or written by the renderer)
-DERIVED_KEYS = ("basis_kind", "ground_truth_stats")
+DERIVED_KEYS = ("basis_kind", "ground_truth_stats", "light_vectors")
 
 
 def scene_from_dict(d: dict[str, Any]) -> SceneSpec:
@@ -202,11 +228,15 @@ def scene_from_dict(d: dict[str, Any]) -> SceneSpec:
 # ----------------------------------------------------------------------------------------------- seeds
 
 
-def scene_seed_sequence(global_seed: int, split: str, index: int, attempt: int = 0) -> np.random.SeedSequence:
-    """The per-scene seed: a function of (global seed, split, scene index, attempt) only, so shards agree."""
+def scene_seed_sequence(global_seed: int, split: str, index: int, attempt: int = 0,
+                        data_version: int = 1) -> np.random.SeedSequence:
+    """The per-scene seed: a function of (global seed, split, scene index, attempt, data version) only, so shards
+    agree; data version 1 keeps the entropy it always had."""
     if split not in SPLITS:
         raise ValueError(f"split must be one of {sorted(SPLITS)}, got {split!r}")
-    return np.random.SeedSequence([int(global_seed) & 0xFFFFFFFF, SPLITS[split], int(index), int(attempt), 0x5EED])
+    extra = [] if data_version == 1 else [int(data_version)]
+    return np.random.SeedSequence([int(global_seed) & 0xFFFFFFFF, SPLITS[split], int(index), int(attempt), 0x5EED]
+                                  + extra)
 
 
 def _sub_seed(rng: np.random.Generator) -> int:
@@ -382,8 +412,13 @@ TRAIN_BASIS = {"env": 2, "directional": 3, "point": 3}
 
 
 def generate_scene(global_seed: int, split: str, index: int, resolution: int,
-                   catalog: AssetCatalog | None = None, attempt: int = 0) -> SceneSpec:
-    """Draw one scene. ``catalog`` None (or empty) means everything procedural."""
+                   catalog: AssetCatalog | None = None, attempt: int = 0, data_version: int = 1) -> SceneSpec:
+    """Draw one scene. ``catalog`` None (or empty) means everything procedural. ``data_version`` 2: see
+    :func:`generate_scene_v2`; 1 draws exactly what it always drew."""
+    if data_version not in GENERATOR_VERSIONS:
+        raise ValueError(f"data version must be one of {sorted(GENERATOR_VERSIONS)}, got {data_version}")
+    if data_version == 2:
+        return generate_scene_v2(global_seed, split, index, resolution, catalog, attempt)
     catalog = (catalog or AssetCatalog()).for_split(split)
     rng = np.random.default_rng(scene_seed_sequence(global_seed, split, index, attempt))
     count = int(rng.choice([1, 2, 3, 4], p=[0.2, 0.3, 0.3, 0.2]))
@@ -414,4 +449,155 @@ def generate_scene(global_seed: int, split: str, index: int, resolution: int,
         name=f"scene_{index:06d}", index=int(index), split=split, seed=int(global_seed), attempt=int(attempt),
         resolution=int(resolution), objects=objects, background=background,
         basis=[light_to_dict(b) for b in basis], images=images, render_seed=_sub_seed(rng), lighting_group=group,
+    )
+
+
+# ----------------------------------------------------------------------------------------------- data v2
+
+TRAIN_BASIS_V2 = {"env": 2, "directional": 3, "point": 2, "spot": 2, "area": 1}
+MODES_V2 = {"mixed": 0.7, "fixed+moving": 0.15, "spot": 0.15}  # how a v2 train scene's 10 images are lit
+DISPLACEABLE = ("sphere", "torus", "superquadric", "mesh")
+
+
+def random_near_point(rng: np.random.Generator) -> PointLight:
+    """A point light close to the scene (z 0.9-1.8): irradiance falls off visibly across the objects."""
+    pos = np.array([rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), rng.uniform(0.9, 1.8)])
+    return PointLight(position=tuple(float(c) for c in pos),
+                      intensity=tuple(float(c) for c in np.pi * float(pos @ pos) * _tint(rng)))
+
+
+def random_spot(rng: np.random.Generator, objects: list[ObjectSpec]) -> SpotLight:
+    """A narrow spot aimed near one object: irradiance pi on its axis at the target, regions outside its cone
+    unlit (the paper's failure case)."""
+    aim = np.asarray(objects[int(rng.integers(len(objects)))].position, float) + np.append(rng.uniform(-0.3, 0.3, 2), 0)
+    pos = np.array([rng.uniform(-1.5, 1.5), rng.uniform(-1.5, 1.5), rng.uniform(1.5, 3.0)])
+    cutoff = float(rng.uniform(12, 30))
+    d2 = float(((pos - aim) ** 2).sum())
+    return SpotLight(position=tuple(float(c) for c in pos), target=tuple(float(c) for c in aim),
+                     intensity=tuple(float(c) for c in np.pi * d2 * _tint(rng)), cutoff_deg=cutoff,
+                     beam_deg=float(cutoff * rng.uniform(0.5, 0.9)))
+
+
+def random_area(rng: np.random.Generator) -> AreaLight:
+    """A square area light outside the orthographic view (|x| or |y| > 1.4), facing the origin, irradiance about
+    pi there."""
+    phi = rng.uniform(0, 2 * np.pi)
+    r = rng.uniform(1.4, 2.2)
+    pos = np.array([r * np.cos(phi), r * np.sin(phi), rng.uniform(0.8, 2.5)])
+    size = float(rng.uniform(0.4, 1.0))
+    d = float(np.linalg.norm(pos))
+    cos_e = 1.0  # it faces the origin
+    radiance = np.pi * d * d / (size * size * cos_e) * _tint(rng)
+    return AreaLight(position=tuple(float(c) for c in pos), target=(0.0, 0.0, 0.0), size=size,
+                     radiance=tuple(float(c) for c in radiance))
+
+
+def _add_detail(rng: np.random.Generator, obj: ObjectSpec, catalog: AssetCatalog, background: bool = False) -> None:
+    """Data v2 surface detail: a normal map (half the surfaces) and, for smooth shapes, displacement."""
+    m = obj.material
+    if rng.random() < 0.5:
+        if catalog.normal_maps and rng.random() < 0.6:
+            m.normal_tex = TextureSpec("pbr", pbr_set=str(rng.choice(catalog.normal_maps)))
+        else:
+            kind = str(rng.choice(["noise", "cells_edge", "stripes", "checkers"]))
+            m.normal_tex = TextureSpec(kind, seed=_sub_seed(rng), freq=float(rng.uniform(2, 8)),
+                                       angle=float(rng.uniform(0, np.pi)))
+        m.normal_strength = float(rng.uniform(0.4, 1.0))
+    if not background and obj.shape in DISPLACEABLE and rng.random() < 0.3:
+        obj.params.update({"disp_amp": float(rng.uniform(0.01, 0.05)), "disp_seed": float(_sub_seed(rng)),
+                           "disp_freq": float(rng.uniform(2, 6))})
+
+
+def _occluder(rng: np.random.Generator, catalog: AssetCatalog, objects: list[ObjectSpec]) -> ObjectSpec:
+    """A small object in front of another one (partial occlusion and cast shadows)."""
+    behind = objects[int(rng.integers(len(objects)))]
+    occ = _random_object(rng, catalog, len(objects), 3)
+    xy = np.asarray(behind.position[:2]) + rng.uniform(-0.35, 0.35, 2) * behind.scale
+    occ.scale = float(behind.scale * rng.uniform(0.3, 0.55))
+    occ.position = (float(xy[0]), float(xy[1]), float(behind.position[2] + behind.scale + occ.scale * rng.uniform(0.3, 1.5)))
+    return occ
+
+
+def _v2_images(rng: np.random.Generator, kinds: list[str]) -> tuple[str, list[ImageSpec]]:
+    idx = {k: [i for i, kk in enumerate(kinds) if kk == k] for k in TRAIN_BASIS_V2}
+    mode = str(rng.choice(list(MODES_V2), p=list(MODES_V2.values())))
+    images = []
+    if mode == "fixed+moving":  # a strong light fixed for all images, a weak one moving (the paper's failure case)
+        fixed_kind = str(rng.choice(["env", "directional", "area"]))
+        fixed = int(rng.choice(idx[fixed_kind]))
+        strong = rng.uniform(0.8, 1.5) if fixed_kind == "env" else rng.uniform(1.0, 2.0)
+        movers = [i for k in ("directional", "point", "spot") for i in idx[k] if i != fixed]
+        for _ in range(NUM_IMAGES):
+            w = np.zeros(len(kinds))
+            w[fixed] = strong
+            w[int(rng.choice(movers))] += strong * rng.uniform(0.08, 0.3)
+            images.append(ImageSpec("m", [float(x) for x in w]))
+        return mode, images
+    for _ in range(NUM_IMAGES):
+        if mode == "spot":
+            config = "f" if rng.random() < 0.7 else "h"
+        else:
+            config = str(rng.choice(list(CONFIGS_V2), p=[0.14, 0.14, 0.12, 0.14, 0.12, 0.08, 0.08, 0.1, 0.08]))
+        w = np.zeros(len(kinds))
+        parts = CONFIG_KINDS[config]
+        for kind in parts:
+            if kind == "env":
+                if len(parts) == 1:
+                    w[rng.choice(idx["env"])] = rng.uniform(0.5, 1.5)
+                else:
+                    w[rng.choice(idx["env"])] = rng.uniform(0.02, 0.1) if mode == "spot" else rng.uniform(0.15, 0.8)
+            else:
+                w[rng.choice(idx[kind])] = rng.uniform(0.5, 2.0)
+        images.append(ImageSpec(config, [float(x) for x in w]))
+    return mode, images
+
+
+def generate_scene_v2(global_seed: int, split: str, index: int, resolution: int,
+                      catalog: AssetCatalog | None = None, attempt: int = 0) -> SceneSpec:
+    """Data v2: 1-6 objects plus, in 35 % of scenes, a small occluder in front of one of them; normal-mapped
+    (PBR sets' normal_gl or procedural relief) and displaced surfaces; train lighting from a basis of 2
+    environment rotations, 3 directional, 2 near point, 2 spot and 1 area light, each scene lit in one of three
+    modes: ``mixed`` (every image one of the configurations a-i), ``fixed+moving`` (a strong fixed light plus a
+    weak moving one, configuration m) or ``spot`` (narrow spots leaving regions unlit, f/h). The test split keeps
+    v1's lighting groups on v2 geometry."""
+    catalog = (catalog or AssetCatalog()).for_split(split)
+    rng = np.random.default_rng(scene_seed_sequence(global_seed, split, index, attempt, data_version=2))
+    count = int(rng.choice([1, 2, 3, 4, 5, 6], p=[0.1, 0.2, 0.25, 0.2, 0.15, 0.1]))
+    objects = [_random_object(rng, catalog, k, count) for k in range(count)]
+    if rng.random() < 0.35:
+        objects.append(_occluder(rng, catalog, objects))
+    for o in objects:
+        _add_detail(rng, o, catalog)
+    background = _background(rng, catalog, objects) if rng.random() < 0.7 else None
+    if background is not None:
+        _add_detail(rng, background, catalog, background=True)
+    source = _envmap_source(rng, catalog)
+    group = None
+    if split == "train":
+        basis = (_env_rotations(rng, source, TRAIN_BASIS_V2["env"])
+                 + [random_directional(rng) for _ in range(TRAIN_BASIS_V2["directional"])]
+                 + [random_near_point(rng) for _ in range(TRAIN_BASIS_V2["point"])]
+                 + [random_spot(rng, objects) for _ in range(TRAIN_BASIS_V2["spot"])]
+                 + [random_area(rng) for _ in range(TRAIN_BASIS_V2["area"])])
+        kinds = [k for k, n in TRAIN_BASIS_V2.items() for _ in range(n)]
+        group_mode, images = _v2_images(rng, kinds)
+    else:
+        group_mode = None
+        group = TEST_GROUPS[index % len(TEST_GROUPS)]
+        one_hot = [[1.0 if j == k else 0.0 for j in range(NUM_IMAGES)] for k in range(NUM_IMAGES)]
+        if group == "directional":
+            basis = [random_directional(rng) for _ in range(NUM_IMAGES)]
+            images = [ImageSpec("b", w) for w in one_hot]
+        elif group == "environment":
+            basis = _env_rotations(rng, source, NUM_IMAGES)
+            images = [ImageSpec("a", w) for w in one_hot]
+        else:
+            basis = _env_rotations(rng, source, 1) + [random_directional(rng) for _ in range(NUM_IMAGES)]
+            w_env = float(rng.uniform(0.2, 0.6))
+            images = [ImageSpec("d", [w_env] + w) for w in one_hot]
+    return SceneSpec(
+        name=f"scene_{index:06d}", index=int(index), split=split, seed=int(global_seed), attempt=int(attempt),
+        resolution=int(resolution), objects=objects, background=background,
+        basis=[light_to_dict(b) for b in basis], images=images, render_seed=_sub_seed(rng), lighting_group=group,
+        generator_version=GENERATOR_VERSIONS[2], lighting_mode=group_mode,
     )

@@ -21,6 +21,10 @@ def register(subparsers) -> None:
     p.add_argument("--split", choices=["train", "test"], default="train",
                    help="train, or the fixed test split (held-out assets, PS-Wild-Test lighting groups)")
     p.add_argument("--spp", type=int, default=16, help="samples per pixel per basis render (default 16)")
+    p.add_argument("--data-version", type=int, choices=[1, 2], default=1,
+                   help="scene generator: 1 (default; the scenes a seed always gave) or 2 (spot / area / near "
+                        "lights, a strong fixed light with a weak moving one, normal maps, displacement, up to 6 "
+                        "objects and occluders, per-image light vectors; see docs/synth.md)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--no-progress", dest="quiet", action="store_true", help=argparse.SUPPRESS)  # the old name
     p.set_defaults(func=run)
@@ -30,7 +34,8 @@ def run(args: argparse.Namespace) -> int:
     from matcap.synth import run_synth
 
     stats = run_synth(args.out, args.scenes, resolution=args.resolution, seed=args.seed, shard=args.shard,
-                      assets=args.assets, split=args.split, spp=args.spp, progress=not args.quiet)
+                      assets=args.assets, split=args.split, spp=args.spp, progress=not args.quiet,
+                      data_version=args.data_version)
     print(f"synth: {stats['rendered']} rendered, {stats['skipped']} already done, {stats['failed']} failed "
           f"({stats['redrawn']} re-drawn, see failures.log) in {stats['seconds']:.1f} s -> {args.out}")
     return 1 if stats["failed"] else 0
