@@ -42,14 +42,14 @@ class RefineSettings:
     prior_base: float = 0.5  # on mean_c (log(b + 0.02) - log(b_net + 0.02))^2
     prior_rough: float = 0.5  # on (r - r_net)^2
     prior_metal: float = 0.5  # on (m - m_net)^2
-    cauchy: float = 0.05  # Cauchy scale, in units of the photos' mean (= 0.5 after scaling)
+    cauchy: float = 0.15  # Cauchy scale, in the fit's units (the photos' mean over the mask is 0.5)
     light_side: int = 256  # the light fit runs on a copy downsampled to this longer side
     light_pixels: int = 4096  # pixels of that copy in the joint light fit
-    light_iters: int = 300
-    coarse_iters: int = 150  # per-pixel iterations at half size (skipped when the maps are <= 128 px)
-    fine_iters: int = 60  # per-pixel iterations at full size
+    light_iters: int = 400
+    coarse_iters: int = 100  # per-pixel iterations at half size (skipped when the maps are <= 128 px)
+    fine_iters: int = 150  # per-pixel iterations at full size
     lr_light: float = 0.02
-    lr_pixel: float = 0.03
+    lr_pixel: float = 0.05
     chunk: int = 32768  # pixels per chunk of the per-pixel solve (memory)
     variation_threshold: float = 0.08  # per-pixel light variation (std / mean over photos) below this is weak
     point_distance: float = 4.0  # start distance of point lights, in half-widths of the framing plane
@@ -442,7 +442,7 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
             loss = per.sum()
             loss.backward()
             opt.step()
-            bar.step(label, float(loss) / max(1, len(part)))
+            bar.step(label, float(loss.detach()) / max(1, len(part)))
         for o, t in zip(out, px.tensors()):
             o[sl] = t.detach()
     return PixelParams(*out)
