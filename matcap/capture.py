@@ -29,6 +29,9 @@ _SKIP = re.compile(
 )
 _MASK = re.compile(r"^(mask|.*\.mask)$", re.IGNORECASE)
 
+#: Whether `matcap capture` refines the maps when neither --refine nor --no-refine is given (docs/refine.md).
+REFINE_BY_DEFAULT = False
+
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "networks" / "weights"
 DEFAULT_WEIGHTS = {"normal": WEIGHTS_DIR / "normal_small.safetensors", "brdf": WEIGHTS_DIR / "brdf_small.safetensors"}
 
@@ -431,6 +434,8 @@ def capture(
     overwrite: bool = False,
     constants: dict[str, float] | None = None,
     max_side: int | None = None,
+    refine: bool = False,
+    refine_settings=None,
     **estimate_kwargs,
 ) -> tuple[MaterialMaps, Path]:
     """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`).
@@ -438,6 +443,8 @@ def capture(
     ``constants`` (e.g. ``{"metallic": 0.0}``) replaces estimated roughness / metallic maps by constants on the mask
     (recorded in ``capture.json`` as ``constant_maps``). ``max_side`` shrinks the photos first so that their
     longer side is at most that many pixels (a quick pass over large photos; maps come out at that size).
+    ``refine`` fits lights and maps to the photos after the networks (:mod:`matcap.refine`; ``refine_settings``
+    a :class:`matcap.refine.RefineSettings`) and adds lights.json, fit.json, residual.png, light_variation.png.
     """
     from matcap.results import check_not_replacing_inputs, check_output_dir, write_result
 
@@ -452,6 +459,13 @@ def capture(
         cap = downscale(cap, max_side)
     maps = estimate(cap.images, cap.mask, **estimate_kwargs).with_constants(constants)
     used = [cap.files[i] for i in maps.meta["images_used"]]
+    extra_files = None
+    if refine:
+        maps, extra_files = refine_maps(maps, [cap.images[i] for i in maps.meta["images_used"]], used,
+                                        cap.colour, refine_settings, constants,
+                                        progress=bool(estimate_kwargs.get("progress")),
+                                        seed=estimate_kwargs.get("seed", 0),
+                                        device=estimate_kwargs.get("device", "cpu"))
     maps.meta.update(
         {
             "tool": "matcap capture",
@@ -464,8 +478,46 @@ def capture(
             "photo_size_wh": original_wh,  # image_size_wh differs from it after --max-side
         }
     )
-    write_result(maps, out, overwrite=overwrite)
+    write_result(maps, out, overwrite=overwrite, extra_files=extra_files)
     return maps, Path(out)
+
+
+def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,
+                constants: dict[str, float] | None = None, *, progress: bool = False, seed: int = 0,
+                device: str = "cpu"):
+    """Run :func:`matcap.refine.refine` on ``maps`` (the networks' output) and the photos they came from.
+
+    Returns ``(refined maps, writer)``: ``writer(folder)`` writes lights.json / fit.json / residual.png /
+    light_variation.png and returns their names. The network maps stay recorded only in capture.json's summary
+    (``refine.normal_change_deg_mean``); ``--constant`` maps stay constant. A light-variation warning is printed.
+    """
+    import sys
+
+    from matcap.refine import RefineSettings, refine
+    from matcap.refine.outputs import write_refine_outputs
+
+    s = settings if settings is not None else RefineSettings(seed=seed, device=device)
+    held = {f"prior_{'metal' if k == 'metallic' else 'rough'}": 1e4 for k in (constants or {})}
+    if held:  # --constant maps stay where the user put them
+        s = dataclasses.replace(s, **held)
+    result = refine(images, maps, s, progress=progress)
+    if result.warning:
+        print(f"warning: {result.warning}", file=sys.stderr)
+    refined = result.maps.with_constants(constants or {})
+    refined.meta = dict(maps.meta)
+    r = result.report
+    refined.meta["refine"] = {
+        "psnr_db_mean": r["psnr_db_mean"], "normal_change_deg_mean": r["normal_change_deg_mean"],
+        "light_model": s.light_model, "seconds": r["timings"]["total_s"],
+        "weak_light_variation_fraction": r["light_variation"]["weak_fraction"],
+        "files": ["lights.json", "fit.json", "residual.png", "light_variation.png"],
+    }
+    refined.meta["timings"] = dict(maps.meta.get("timings", {}), refine_s=r["timings"]["total_s"])
+
+    def writer(folder):
+        return write_refine_outputs(folder, result, files, colour)
+
+    return refined, writer
 
 
 def parse_constants(items: list[str] | None) -> dict[str, float]:

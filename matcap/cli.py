@@ -19,6 +19,7 @@ from matcap.errors import MatcapError
 
 COMMANDS = [
     "capture",
+    "refine",
     "relight",
     "gallery",
     "export",

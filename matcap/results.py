@@ -21,7 +21,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -124,10 +124,15 @@ def write_result(
     out_dir: str | os.PathLike,
     overwrite: bool = False,
     extra_json: dict[str, Any] | None = None,
+    extra_files: Callable[[Path], list[str]] | None = None,
 ) -> Path:
-    """Write a complete result folder atomically (see module docstring). Returns its path."""
+    """Write a complete result folder atomically (see module docstring). Returns its path.
+
+    ``extra_files(tmp_folder) -> names`` writes more files into the folder before it is renamed into place."""
     with output_dir(out_dir, overwrite) as tmp:
         files = write_maps(maps, tmp)
+        if extra_files is not None:
+            files += extra_files(tmp)
         info = dict(maps.meta)
         info.update(extra_json or {})
         info["files"] = files + ["capture.json"]

@@ -40,6 +40,13 @@ def register(sub) -> None:
     p.add_argument("--constant", action="append", metavar="MAP=V",
                    help="replace the estimated roughness or metallic map by V on the mask, e.g. metallic=0 for a "
                         "non-metal (repeatable; recorded in capture.json)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--refine", dest="refine", action="store_true", default=None,
+                   help="after the networks, fit the lights and the maps to the photos (docs/refine.md)")
+    g.add_argument("--no-refine", dest="refine", action="store_false",
+                   help="keep the networks' maps as they are (no lights.json / fit.json)")
+    p.add_argument("--refine-light", choices=("directional", "point"), default="directional",
+                   help="light model of the refinement: a distant light or a near point light per photo")
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
     p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")
@@ -83,15 +90,25 @@ def run(args) -> int:
     constants = parse_constants(args.constant)
     check_device(args.device)
     _check_follow_ups(args)
+    from matcap.capture import REFINE_BY_DEFAULT
+
+    do_refine = REFINE_BY_DEFAULT if args.refine is None else args.refine
+    settings = None
+    if do_refine:
+        from matcap.refine import RefineSettings
+
+        settings = RefineSettings(light_model=args.refine_light, seed=args.seed, device=args.device)
     maps, out = capture(
         photos, out, mask=args.mask, linear=args.linear, overwrite=args.overwrite,
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
-        constants=constants, max_side=args.max_side,
+        constants=constants, max_side=args.max_side, refine=do_refine, refine_settings=settings,
     )
     t = maps.meta["timings"]
     print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "
-          f"{'normal + BRDF' if maps.has_brdf else 'normal'} maps, {t['total_s']:.1f} s)")
+          f"{'normal + BRDF' if maps.has_brdf else 'normal'} maps, {t['total_s']:.1f} s"
+          + (f" + refinement {t['refine_s']:.1f} s, re-render {maps.meta['refine']['psnr_db_mean']:.1f} dB"
+             if "refine" in maps.meta else "") + ")")
     if args.relight or args.point:
         from matcap.relight import relight
 

@@ -195,14 +195,11 @@ class _Problem:
 
 def _loss(torch, prob: _Problem, px, lights, s: RefineSettings, c: float, brdf: bool = True):
     """Per-pixel loss (N,) (data + prior) and the data part alone."""
-    from matcap.refine.model import shade
-
     n = px.normal()
     b = px.base()
     r = px.rough() if brdf else prob.r0
     m = px.metal() if brdf else prob.m0
-    wo, irr = lights.incident(prob.pos)
-    pred = shade(n, b, r, m, wo, irr, lights.sh)
+    pred = _shade(lights, prob.pos, n, b, r, m)
     res = pred - prob.obs
     res = torch.where(prob.sat & (res > 0), torch.zeros_like(res), res)  # clipped highlights: only a lower bound
     rho = torch.log1p((res / c) ** 2)
@@ -212,6 +209,15 @@ def _loss(torch, prob: _Problem, px, lights, s: RefineSettings, c: float, brdf: 
     if brdf:
         prior = prior + s.prior_rough * (r - prob.r0) ** 2 + s.prior_metal * (m - prob.m0) ** 2
     return data + prior, data
+
+
+def _shade(lights, pos, n, b, r, m):
+    from matcap.refine.model import shade, shade_directional
+
+    if lights.kind == "directional":
+        return shade_directional(n, b, r, m, lights.directions(), lights.log_intensity.exp(), lights.sh)
+    wo, irr = lights.incident(pos)
+    return shade(n, b, r, m, wo, irr, lights.sh)
 
 
 def _init_lights(torch, prob: _Problem, s: RefineSettings, device):
@@ -449,8 +455,6 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
 
 
 def _predict(torch, prob: _Problem, px, lights, s) -> np.ndarray:
-    from matcap.refine.model import shade
-
     outs = []
     with torch.no_grad():
         for i in range(0, len(prob), s.chunk):
@@ -458,8 +462,7 @@ def _predict(torch, prob: _Problem, px, lights, s) -> np.ndarray:
             part = prob.part(sl)
             r = px.rough()[sl] if s.fit_brdf else part.r0
             m = px.metal()[sl] if s.fit_brdf else part.m0
-            wo, irr = lights.incident(part.pos)
-            outs.append(shade(px.normal()[sl], px.base()[sl], r, m, wo, irr, lights.sh).cpu().numpy())
+            outs.append(_shade(lights, part.pos, px.normal()[sl], px.base()[sl], r, m).cpu().numpy())
     return np.concatenate(outs, axis=1)
 
 

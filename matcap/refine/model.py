@@ -132,3 +132,56 @@ def shade(normal, base, rough, metal, wo, irradiance, sh) -> torch.Tensor:
     direct = f * irradiance
     ambient = sh_irradiance(normal, sh) * ((1.0 - metal)[:, None] * base / math.pi)[None]
     return direct + ambient
+
+
+def shade_directional(normal, base, rough, metal, directions, irradiance, sh, specular: float = 0.5) -> torch.Tensor:
+    """:func:`shade` for directional lights seen along +z, with everything that depends only on the light
+    (half vector, Fresnel of the dielectric, the light's terms of the bump shadowing) computed once per photo:
+    the same numbers as ``principled_eval`` (tests/test_refine_model.py) at about a third of the work.
+
+    normal (N, 3); base (N, 3); rough, metal (N,); directions (K, 3) unit; irradiance (K, 3); sh (K|1, 9, 3).
+    """
+    from matcap.refine import bsdf as B
+
+    eta = 2.0 / (1.0 - math.sqrt(0.08 * specular)) - 1.0
+    l = directions
+    h = l + torch.tensor([0.0, 0.0, 1.0], dtype=l.dtype, device=l.device)
+    h = h / h.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    cos_d = (h * l).sum(-1).clamp(0.0, 1.0)  # (K,)
+    w_d = B._schlick_weight(cos_d)
+    f_die = B._fresnel_dielectric(cos_d, eta)
+    lz = l[:, 2].clamp(min=1e-6)
+    tan2_l = (1.0 - lz * lz) / (lz * lz)  # (K,)
+    # per pixel
+    ci = normal[:, 2].clamp(min=1e-6)
+    fi = B._schlick_weight(ci)
+    alpha = (rough * rough).clamp(min=1e-3)
+    a2 = alpha * alpha
+    tan2_i = (1.0 - ci * ci) / (ci * ci)
+    g_i = 2.0 / (1.0 + (1.0 + a2 * tan2_i).sqrt())
+    bump_a2 = (0.125 * tan2_i).clamp(0.0, 1.0)
+    # per photo and pixel (K, N)
+    co_raw = l @ normal.T
+    ch_raw = h @ normal.T
+    co = co_raw.clamp(min=1e-6)
+    ch = ch_raw.clamp(min=1e-6)
+    fo = B._schlick_weight(co)
+    rr = 2.0 * rough[None] * (cos_d * cos_d)[:, None]
+    diff = (1.0 - 0.5 * fi)[None] * (1.0 - 0.5 * fo) + rr * (fo + fi[None] + fo * fi[None] * (rr - 1.0))
+    diff = diff * co * ((1.0 - metal) / math.pi)[None]
+    denom = ch * ch * (a2[None] - 1.0) + 1.0
+    d = a2[None] / (math.pi * denom * denom)
+    tan2_o = (1.0 - co * co) / (co * co)
+    g_o = 2.0 / (1.0 + (1.0 + a2[None] * tan2_o).sqrt())
+    spec = d * (g_i / (4.0 * ci))[None] * g_o
+    bump = 2.0 / (1.0 + (1.0 + bump_a2[None] * tan2_l[:, None]).sqrt())
+    valid = (co_raw > 1e-6) & (ch_raw > 0) & (normal[:, 2] > 1e-6)[None] & (l[:, 2] > 0)[:, None]
+    zero = torch.zeros((), dtype=co.dtype, device=co.device)
+    diff = torch.where(valid, diff * bump, zero)
+    spec = torch.where(valid, spec * bump, zero)
+    # colour: diffuse * base + spec * F, F = (1 - m) F_dielectric + m Schlick(base)
+    fres = ((1.0 - metal)[None] * f_die[:, None])[..., None] + metal[None, :, None] * (
+        base[None] + (1.0 - base)[None] * w_d[:, None, None])
+    direct = (diff[..., None] * base[None] + spec[..., None] * fres) * irradiance[:, None, :]
+    ambient = sh_irradiance(normal, sh) * ((1.0 - metal)[:, None] * base / math.pi)[None]
+    return direct + ambient
