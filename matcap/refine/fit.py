@@ -291,6 +291,15 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     """
     import torch
 
+    was = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=True)  # bit-for-bit repeatable for a seed (measured)
+    try:
+        return _refine(torch, images, maps, settings, progress)
+    finally:
+        torch.use_deterministic_algorithms(was[0], warn_only=was[1])
+
+
+def _refine(torch, images, maps, settings, progress) -> RefineResult:
     s = settings or RefineSettings()
     if s.light_model not in ("directional", "point"):
         raise MatcapError(f"light model must be 'directional' or 'point', got {s.light_model!r}")

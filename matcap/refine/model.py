@@ -35,8 +35,14 @@ def sh_basis(n: torch.Tensor) -> torch.Tensor:
 
 def sh_irradiance(n: torch.Tensor, sh: torch.Tensor) -> torch.Tensor:
     """Irradiance from an SH radiance: n (N, 3), sh (K, 9, 3) -> (K, N, 3) (K may be 1)."""
-    a = torch.tensor(SH_A, dtype=sh.dtype, device=sh.device)
-    return torch.einsum("nj,kjc->knc", sh_basis(n), sh * a[None, :, None])
+    # elementwise on purpose (no BLAS): matrix products may round differently from run to run (MKL takes other
+    # code paths for differently aligned buffers), and the fit must be bit-for-bit repeatable for a seed
+    basis = sh_basis(n)
+    out = None
+    for j in range(9):
+        term = basis[None, :, j, None] * (SH_A[j] * sh[:, j])[:, None, :]
+        out = term if out is None else out + term
+    return out
 
 
 def plane_positions(rows: torch.Tensor, cols: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -134,6 +140,11 @@ def shade(normal, base, rough, metal, wo, irradiance, sh) -> torch.Tensor:
     return direct + ambient
 
 
+def _dots(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(K, 3) x (N, 3) -> (K, N) dot products, elementwise (repeatable, unlike BLAS; see :func:`sh_irradiance`)."""
+    return a[:, None, 0] * b[None, :, 0] + a[:, None, 1] * b[None, :, 1] + a[:, None, 2] * b[None, :, 2]
+
+
 def shade_directional(normal, base, rough, metal, directions, irradiance, sh, specular: float = 0.5) -> torch.Tensor:
     """:func:`shade` for directional lights seen along +z, with everything that depends only on the light
     (half vector, Fresnel of the dielectric, the light's terms of the bump shadowing) computed once per photo:
@@ -161,8 +172,8 @@ def shade_directional(normal, base, rough, metal, directions, irradiance, sh, sp
     g_i = 2.0 / (1.0 + (1.0 + a2 * tan2_i).sqrt())
     bump_a2 = (0.125 * tan2_i).clamp(0.0, 1.0)
     # per photo and pixel (K, N)
-    co_raw = l @ normal.T
-    ch_raw = h @ normal.T
+    co_raw = _dots(l, normal)
+    ch_raw = _dots(h, normal)
     co = co_raw.clamp(min=1e-6)
     ch = ch_raw.clamp(min=1e-6)
     fo = B._schlick_weight(co)
