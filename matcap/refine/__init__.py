@@ -1,0 +1,1 @@
+"""Photo-consistent refinement of the network maps and the per-image lights (issue 16)."""
