@@ -18,7 +18,7 @@ normalmap (``flip_invalid_normals`` and ``use_shadowing_function`` both on by de
 principled (front side only: ``bsdf = (1 - metallic) * spec_trans = 0``, so nothing reflects from the back)
   * ``eta = 2 / (1 - sqrt(0.08 specular)) - 1`` (1.5 for specular 0.5: F0 = 4 %).
   * GGX (Trowbridge-Reitz) with ``alpha = max(0.001, roughness^2)``,
-    ``D(h) = 1 / (pi a^2 ((h_x^2 + h_y^2) / a^2 + h_z^2)^2)`` (zero where D h_z <= 1e-20),
+    ``D(h) = 1 / (pi a^2 ((h_x^2 + h_y^2) / a^2 + h_z^2)^2)`` (Mitsuba zeroes D h_z <= 1e-20: never reached),
     separable Smith ``G = G1(wi) G1(wo)``, ``G1(v) = 2 / (1 + sqrt(1 + a^2 tan^2 v))`` (zero when ``v`` sees the
     back of the microfacet).
   * ``h = normalize(wi + wo)``; reflection needs ``cos_i cos_o > 0``, ``cos_i > 0`` and ``dot(wi, h)``,
@@ -54,14 +54,12 @@ def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a * b).sum(-1)
 
 
-def _normalize(v: torch.Tensor) -> torch.Tensor:
-    return v * torch.rsqrt((v * v).sum(-1, keepdim=True).clamp(min=_TINY))
-
-
-def _cross2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """|a x b|^2 (= sin^2 of the angle for unit vectors, without the cancellation of 1 - cos^2)."""
-    c = torch.linalg.cross(a, b, dim=-1)
-    return (c * c).sum(-1)
+def _cross_norm2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """|a x b|^2, broadcasting (torch.linalg.cross needs equal ranks)."""
+    ax, ay, az = a.unbind(-1)
+    bx, by, bz = b.unbind(-1)
+    x, y, z = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    return x * x + y * y + z * z
 
 
 def _schlick_weight(c: torch.Tensor) -> torch.Tensor:
@@ -71,25 +69,21 @@ def _schlick_weight(c: torch.Tensor) -> torch.Tensor:
 
 
 def _fresnel_dielectric(cos_i: torch.Tensor, eta: float) -> torch.Tensor:
-    """Unpolarised Fresnel reflectance, light arriving from outside (``cos_i >= 0``) at relative IOR ``eta``."""
-    cos_i = cos_i.clamp(0.0, 1.0)
-    cos_t2 = 1.0 - (1.0 - cos_i * cos_i) / (eta * eta)
-    cos_t = cos_t2.clamp(min=_TINY).sqrt()
-    a_s = (cos_i - eta * cos_t) / (cos_i + eta * cos_t).clamp(min=_TINY)
-    a_p = (cos_t - eta * cos_i) / (cos_t + eta * cos_i).clamp(min=_TINY)
-    r = 0.5 * (a_s * a_s + a_p * a_p)
+    """Unpolarised Fresnel reflectance, light arriving from outside (``cos_i`` in (0, 1]) at relative IOR ``eta``."""
     if eta == 1.0:
-        return torch.zeros_like(r)
-    return torch.where(cos_i > 0, r, torch.ones_like(r))
+        return torch.zeros_like(cos_i)
+    cos_i = cos_i.clamp(_TINY, 1.0)
+    cos_t = (1.0 - (1.0 - cos_i * cos_i) / (eta * eta)).clamp(min=_TINY).sqrt()
+    a_s = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
+    a_p = (cos_t - eta * cos_i) / (cos_t + eta * cos_i)
+    return 0.5 * (a_s * a_s + a_p * a_p)
 
 
-def _tan2(sin2: torch.Tensor, cos: torch.Tensor) -> torch.Tensor:
-    return sin2 / (cos * cos).clamp(min=_TINY)
-
-
-def _smith_g1(v: torch.Tensor, cos_v: torch.Tensor, sin2_v: torch.Tensor, m: torch.Tensor, alpha2: torch.Tensor):
-    g = 2.0 / (1.0 + (1.0 + alpha2 * _tan2(sin2_v, cos_v)).sqrt())
-    return torch.where(_dot(v, m) * cos_v > 0, g, torch.zeros_like(g))
+def _smith_g1(cos_v: torch.Tensor, alpha2: torch.Tensor) -> torch.Tensor:
+    """GGX Smith masking of a direction at ``cos_v`` (> 0) to the shading normal (the microfacet-side test is
+    implied by the callers' masks)."""
+    c2 = (cos_v * cos_v).clamp(min=_TINY)
+    return 2.0 / (1.0 + (1.0 + alpha2 * ((1.0 - c2).clamp(min=0.0) / c2)).sqrt())
 
 
 def principled_eval(
@@ -107,61 +101,58 @@ def principled_eval(
     vector toward the viewer; wo: (..., 3) unit vector toward the light; base_color: (..., 3) linear RGB;
     roughness, metallic: (...,) in [0, 1]; all broadcast together. Returns (..., 3), zero where ``wo`` or
     ``wi`` is below the (geometric or shading) surface. Differentiable in every tensor argument.
+
+    Quantities are computed at the smallest broadcast shape they need (per pixel, per light), so a (K, 1, 3)
+    light direction against (1, N, 3) maps costs little more than the (K, N) terms themselves.
     """
     eta = specular_to_eta(specular)
-    roughness = torch.as_tensor(roughness)
-    metallic = torch.as_tensor(metallic)
-    normal, wi, wo, base_color = torch.broadcast_tensors(normal, wi, wo, base_color)
-    roughness, metallic = torch.broadcast_tensors(roughness, metallic)
-    shape = torch.broadcast_shapes(normal.shape[:-1], roughness.shape)
-    normal, wi, wo, base_color = (t.expand(*shape, 3) for t in (normal, wi, wo, base_color))
-    roughness, metallic = roughness.expand(shape), metallic.expand(shape)
+    roughness = torch.as_tensor(roughness, dtype=base_color.dtype, device=base_color.device)
+    metallic = torch.as_tensor(metallic, dtype=base_color.dtype, device=base_color.device)
 
-    # normalmap: flip invalid normals, normalise, the two-sided visibility test, shadow terminator
-    gi, go = wi[..., 2], wo[..., 2]
-    flip = (gi * _dot(wi, normal) <= 0)[..., None]
-    n = _normalize(torch.where(flip, normal * normal.new_tensor([-1.0, -1.0, 1.0]), normal))
-    ci, co = _dot(wi, n), _dot(wo, n)
-    sin2_i, sin2_o = _cross2(wi, n), _cross2(wo, n)
-    # principled: front-side reflection only
-    active = (go * co > 0) & (ci > 0) & (co > 0)
+    # normalmap: flip shading normals that face away from wi, normalise
+    flip = (wi[..., 2] * _dot(wi, normal) <= 0)[..., None]
+    n = torch.where(flip, normal * normal.new_tensor([-1.0, -1.0, 1.0]), normal)
+    n = n * torch.rsqrt((n * n).sum(-1, keepdim=True).clamp(min=_TINY))
+    ci = _dot(wi, n)  # per pixel for an orthographic view
+    co = _dot(wo, n)
+    go = wo[..., 2]
+    # principled reflects on the front side only (no spec_trans: its back side is black); normalmap needs wo
+    # above both the geometric and the shading normal
+    active = (go > 0) & (co > 0) & (ci > 0)
+
+    # half vector h = (wi + wo) / |wi + wo|: dot(wi, h) = dot(wo, h) = sqrt((1 + wi.wo) / 2), per light for
+    # directional lights; |h x n|^2 from the cross product keeps sharp peaks exact in float32
+    s = wi + wo
+    len2 = (s * s).sum(-1).clamp(min=_TINY)
+    ch = (ci + co) * torch.rsqrt(len2)
+    sin2_h = _cross_norm2(s, n) / len2
+    c_ih = (0.5 * (1.0 + _dot(wi, wo))).clamp(min=_TINY).sqrt()
 
     alpha = (roughness * roughness).clamp(min=0.001)
     alpha2 = alpha * alpha
-    h = _normalize(wi + wo)
-    h = h * torch.where(_dot(h, n) < 0, -1.0, 1.0).to(h.dtype)[..., None]
-    ch, sin2_h = _dot(h, n), _cross2(h, n)
-    cih, coh = _dot(wi, h), _dot(wo, h)
-    spec_active = active & (cih > 0) & (coh > 0)
+    t = sin2_h + alpha2 * ch * ch
+    d = alpha2 / (math.pi * (t * t).clamp(min=_TINY))  # GGX: 1 / (pi a^2 (sin^2/a^2 + cos^2)^2)
+    ci_safe = ci.clamp(min=1e-6)
+    g = _smith_g1(ci_safe, alpha2) * _smith_g1(co, alpha2)
+    spec = d * g / (4.0 * ci_safe)
 
-    # GGX normal distribution
-    denom = sin2_h / alpha2 + ch * ch
-    d = 1.0 / (math.pi * alpha2 * (denom * denom).clamp(min=_TINY))
-    d = torch.where(d * ch > 1e-20, d, torch.zeros_like(d))
-    g = _smith_g1(wi, ci, sin2_i, h, alpha2) * _smith_g1(wo, co, sin2_o, h, alpha2)
-    f_dielectric = _fresnel_dielectric(cih, eta)
-    spec_active = spec_active & (f_dielectric > 0)
-    w_h = _schlick_weight(cih.abs())[..., None]
-    f_metal = w_h + (1.0 - w_h) * base_color
-    m3 = metallic[..., None]
-    fresnel = (1.0 - m3) * f_dielectric[..., None] + m3 * f_metal
-    ci_safe = torch.where(active, ci, torch.ones_like(ci))
-    spec = fresnel * (d * g / (4.0 * ci_safe))[..., None]
-    spec = torch.where(spec_active[..., None], spec, torch.zeros_like(spec))
+    # Fresnel = f_s + f_m * base_color: (1 - m) dielectric + m Schlick(base_color)
+    w_h = _schlick_weight(c_ih)
+    f_m = metallic * (1.0 - w_h)
+    f_s = (1.0 - metallic) * _fresnel_dielectric(c_ih, eta) + metallic * w_h
 
-    # Burley diffuse with retro-reflection
-    fo, fi = _schlick_weight(co.abs()), _schlick_weight(ci.abs())
-    f_diff = (1.0 - 0.5 * fi) * (1.0 - 0.5 * fo)
-    rr = 2.0 * roughness * coh * coh
-    f_retro = rr * (fo + fi + fo * fi * (rr - 1.0))
-    diff = ((1.0 - metallic) * co * _INV_PI * (f_diff + f_retro))[..., None] * base_color
-    diff_active = active & (1.0 - metallic > 0)
-    diff = torch.where(diff_active[..., None], diff, torch.zeros_like(diff))
+    # Burley diffuse with retro-reflection (flatness 0)
+    fo, fi = _schlick_weight(co), _schlick_weight(ci)
+    rr = 2.0 * roughness * c_ih * c_ih
+    f_diffuse = (1.0 - 0.5 * fi) * (1.0 - 0.5 * fo) + rr * (fo + fi + fo * fi * (rr - 1.0))
+    diffuse = (1.0 - metallic) * co.clamp(min=0.0) * _INV_PI * f_diffuse
 
-    # shadow terminator (normalmap): angles to the geometric normal +z
-    n_z = n[..., 2]
-    tan2_n = (n[..., 0] ** 2 + n[..., 1] ** 2) / (n_z * n_z).clamp(min=_TINY)
-    a2 = (0.125 * tan2_n).clamp(max=1.0)
-    tan2_wo = (wo[..., 0] ** 2 + wo[..., 1] ** 2) / (go * go).clamp(min=_TINY)
+    # normalmap's shadow terminator (Conty Estevez et al. 2019), angles to the geometric normal +z
+    n_z2 = (n[..., 2] * n[..., 2]).clamp(min=_TINY)
+    a2 = (0.125 * (n[..., 0] * n[..., 0] + n[..., 1] * n[..., 1]) / n_z2).clamp(max=1.0)
+    tan2_wo = (wo[..., 0] * wo[..., 0] + wo[..., 1] * wo[..., 1]) / (go * go).clamp(min=_TINY)
     terminator = 2.0 / (1.0 + (1.0 + a2 * tan2_wo).sqrt())
-    return (spec + diff) * terminator[..., None]
+
+    grey = torch.where(active, spec * f_s * terminator, 0.0)
+    tint = torch.where(active, (spec * f_m + diffuse) * terminator, 0.0)
+    return grey[..., None] + tint[..., None] * base_color
