@@ -57,6 +57,10 @@ def register(sub) -> None:
     p.add_argument("--linear", action="store_true",
                    help="sdm-unips: give the network 8-bit images as stored (linear), as `matcap capture --linear` "
                         "does, instead of sRGB-decoded like photos (the UW captures are linear data)")
+    p.add_argument("--refine", action="store_true",
+                   help="with --method sdm-unips: follow the network by the photo-consistent fit of lights and maps "
+                        "(matcap.refine); on captures with calibrated lights also report the angles between the "
+                        "estimated and the calibrated light directions")
     p.add_argument("--out", metavar="DIR",
                    help="write results.md, results.json and error_maps/<object>.png (0-90 deg) here (a new or "
                         "empty folder unless --overwrite)")
@@ -71,6 +75,8 @@ def register(sub) -> None:
 def command_line(args) -> str:
     """A canonical `matcap eval ...` line reproducing ``args`` (written into the tables)."""
     parts = ["matcap", "eval", args.dataset, "--method", args.method]
+    if getattr(args, "refine", False):
+        parts += ["--refine"]
     if args.reference:
         parts += ["--reference", args.reference]
     if args.objects:
@@ -120,7 +126,7 @@ def run(args) -> int:
             trials=args.trials, seed=args.seed, weights=args.weights, device=args.device, views=args.views,
             max_side=args.max_side, linear=args.linear,
             error_map_dir=(tmp / "error_maps") if tmp is not None else None, split=args.split,
-            command=command_line(args), log=None if args.quiet else runner.stderr_log,
+            command=command_line(args), log=None if args.quiet else runner.stderr_log, refine=args.refine,
         )
         for row in report["objects"]:  # name the error maps where they will be, not in the temporary folder
             if "error_map" in row:
