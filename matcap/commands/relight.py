@@ -10,7 +10,9 @@ def register(sub) -> None:
                     "Writes relight_<name>.exr (linear) and relight_<name>.png (ACES-fit tone mapped sRGB, "
                     "transparent background) per environment map.",
     )
-    p.add_argument("source", help="capture result folder (normal.exr ...) or texture set (basecolor, arm/orm, normal_gl)")
+    p.add_argument("source", help="capture result folder (normal.exr ...), a `matcap export` folder, a texture set "
+                                  "(Substance / Poly Haven / basecolor, arm/orm, normal_gl names) or a .glb "
+                                  "(docs/formats.md)")
     p.add_argument("--env", action="append", metavar="EXR_OR_HDR",
                    help="equirectangular environment map, or a folder of them (repeatable; default: the bundled "
                         "studio map unless --point/--directional is given)")
@@ -33,7 +35,7 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
     p.add_argument("--constant", action="append", metavar="MAP=V",
                    help="render with roughness or metallic set to V on the mask, e.g. metallic=0 (repeatable)")
-    p.add_argument("--out", help="output folder (default: the source folder)")
+    p.add_argument("--out", help="output folder (default: the source folder, or the folder of a .glb / NAME.json)")
     p.add_argument("--overwrite", action="store_true", help="replace existing relight_* files")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -48,7 +50,8 @@ def run(args) -> int:
     envs = None
     if args.env:
         envs = args.env if file_lights else env_paths(args.env)  # with --lights: refused by relight() in one line
-    out = Path(args.out) if args.out else Path(args.source)
+    source_path = Path(args.source)
+    out = Path(args.out) if args.out else (source_path.parent if source_path.is_file() else source_path)
     source = args.source
     tonemap = args.tonemap or ("clip" if file_lights else "aces")
     if args.constant:

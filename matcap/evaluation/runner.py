@@ -440,5 +440,43 @@ def to_json(report: dict[str, Any]) -> str:
     return json.dumps(clean(report), indent=2) + "\n"
 
 
+def evaluate_to_files(dataset: str | Path, method: str = "least-squares", reference: str | None = None, *,
+                      out: str | Path | None = None, json_path: str | Path | None = None,
+                      markdown_path: str | Path | None = None, overwrite: bool = False,
+                      **evaluate_kwargs: Any) -> tuple[dict[str, Any], str]:
+    """:func:`evaluate` and write its tables: ``out`` (a new or empty folder unless ``overwrite``) receives
+    ``results.md``, ``results.json`` and ``error_maps/<object>.png``, built in a temporary folder that replaces
+    ``out`` only when the evaluation is complete; ``json_path`` / ``markdown_path`` receive the JSON report / the
+    Markdown table (refused if they exist, unless ``overwrite``). All writes are atomic. Returns the report and
+    its Markdown table."""
+    import contextlib
+
+    from matcap.imageio import write_text_atomic
+    from matcap.results import output_dir
+
+    for flag, name in (("--json", json_path), ("--markdown", markdown_path)):
+        if name and Path(name).is_dir():
+            raise MatcapError(f"{flag} {name} is a folder; give a file name")
+        if name and Path(name).exists() and not overwrite:
+            raise MatcapError(f"{flag} {name} already exists; pass --overwrite to replace it")
+    out = Path(out) if out is not None else None
+    with contextlib.ExitStack() as stack:
+        tmp = stack.enter_context(output_dir(out, overwrite)) if out is not None else None
+        report = evaluate(dataset, method, reference, error_map_dir=(tmp / "error_maps") if tmp is not None else None,
+                          **evaluate_kwargs)
+        for row in report["objects"]:  # name the error maps where they will be, not in the temporary folder
+            if "error_map" in row:
+                row["error_map"] = str(out / "error_maps" / Path(row["error_map"]).name)
+        md, js = to_markdown(report), to_json(report)
+        if tmp is not None:
+            write_text_atomic(tmp / "results.md", md)
+            write_text_atomic(tmp / "results.json", js)
+    if json_path:
+        write_text_atomic(json_path, js)
+    if markdown_path:
+        write_text_atomic(markdown_path, md)
+    return report, md
+
+
 def stderr_log(line: str) -> None:
     print(line, file=sys.stderr, flush=True)

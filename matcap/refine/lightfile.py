@@ -194,11 +194,11 @@ def lights_document(images: list[dict], **extra: Any) -> dict:
 
 
 def write_lights(path: str | os.PathLike, images: list[dict], **extra: Any) -> dict:
-    """Validate and write lights.json atomically; returns the written document."""
-    from matcap.imageio import write_text_atomic
+    """Validate and write lights.json atomically (``scenes.atomic.write_json_atomic``); returns the document."""
+    from scenes.atomic import write_json_atomic
 
-    doc = lights_document(images, **extra)
-    write_text_atomic(path, json.dumps(doc, indent=1, allow_nan=False) + "\n")
+    doc = lights_document(images, **extra)  # every number checked finite
+    write_json_atomic(path, doc, indent=1)
     return doc
 
 
