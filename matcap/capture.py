@@ -181,7 +181,7 @@ def load_network(path: Path, device: str = "cpu") -> LoadedModel:
         model.load_state_dict(state, strict=True)
         model = model.to(device)
         card = {"name": path.name, "source": "published SDM-UniPS checkpoint",
-                "licence": "MIT with a non-commercial clause (Ikehata); not redistributable"}
+                "license": "MIT with a non-commercial clause (Ikehata); not redistributable"}
     else:
         model, config, card = load_model(path, device=device)
     model.eval()
@@ -425,6 +425,36 @@ def downscale(cap: Capture, max_side: int) -> Capture:
     return dataclasses.replace(cap, images=images, mask=mask)
 
 
+def _relight_requests(relight) -> list[dict[str, Any]]:
+    """``relight`` of :func:`capture` as a list of keyword dicts for :func:`matcap.relight.plan`."""
+    if relight is None:
+        return []
+    if isinstance(relight, (str, os.PathLike, dict)):
+        relight = [relight]
+    out = []
+    for item in relight:
+        if isinstance(item, dict):
+            out.append(dict(item))
+        elif isinstance(item, (str, os.PathLike)):
+            out.append({"env": item})
+        else:
+            raise MatcapError(f"relight entries must be an environment map path or a dict of relight settings, "
+                              f"got {type(item).__name__}")
+    return out
+
+
+def _export_request(export, out: Path, overwrite: bool) -> dict[str, Any] | None:
+    """``export`` of :func:`capture` as keyword arguments of :func:`matcap.export.export` (``out`` included)."""
+    if export is None:
+        return None
+    request = {"out": export} if isinstance(export, (str, os.PathLike)) else dict(export)
+    if "out" not in request:
+        raise MatcapError("export settings need an output folder: export={'out': DIR, ...}")
+    request.setdefault("name", Path(out).name)
+    request.setdefault("overwrite", overwrite)
+    return request
+
+
 def capture(
     folder: str | os.PathLike,
     out: str | os.PathLike,
@@ -434,18 +464,30 @@ def capture(
     overwrite: bool = False,
     constants: dict[str, float] | None = None,
     max_side: int | None = None,
+    relight=None,
+    export=None,
     refine: bool = False,
     refine_settings=None,
     **estimate_kwargs,
 ) -> tuple[MaterialMaps, Path]:
-    """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`).
+    """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`); then, optionally,
+    relight and export them: the whole chain of ``matcap capture``.
 
     ``constants`` (e.g. ``{"metallic": 0.0}``) replaces estimated roughness / metallic maps by constants on the mask
     (recorded in ``capture.json`` as ``constant_maps``). ``max_side`` shrinks the photos first so that their
     longer side is at most that many pixels (a quick pass over large photos; maps come out at that size).
     ``refine`` fits lights and maps to the photos after the networks (:mod:`matcap.refine`; ``refine_settings``
     a :class:`matcap.refine.RefineSettings`) and adds lights.json, fit.json, residual.png, light_variation.png.
+    ``relight``: an environment map path, or a dict of :func:`matcap.relight.relight` settings (``env``,
+    ``point``, ``spp``, ``size`` ...), or a list of them; each renders ``relight_<name>.exr/.png`` into the result
+    folder. ``export``: a folder, or a dict of :func:`matcap.export.export` settings with ``out`` (``preset``,
+    ``normal`` ...; ``name`` defaults to the result folder's name, ``overwrite`` to this call's). Every setting
+    (env maps read once, spp, preset, output folders) is checked before the networks run.
+    Returns the maps and the result folder.
     """
+    from matcap import relight as relighting
+    from matcap.export import check_options
+    from matcap.export import export as export_maps
     from matcap.results import check_not_replacing_inputs, check_output_dir, write_result
 
     constants = {name: check_constant(name, value) for name, value in (constants or {}).items()}
@@ -453,6 +495,13 @@ def capture(
         check_max_side(max_side)  # fail before the expensive part
     check_output_dir(out, overwrite)  # fail before the expensive part
     check_not_replacing_inputs(out, folder, mask)  # --overwrite replaces the out folder: never the photos in it
+    plans = [relighting.plan(**request) for request in _relight_requests(relight)]
+    names = [name for p in plans for name in p.names]
+    if len(set(names)) != len(names):
+        raise MatcapError("two relight renders have the same name; rename an environment map")
+    export_request = _export_request(export, Path(out), overwrite)
+    if export_request is not None:
+        check_options(**export_request)
     cap = load_capture(folder, mask=mask, linear=linear)
     original_wh = [cap.images[0].shape[1], cap.images[0].shape[0]]
     if max_side is not None:
@@ -479,6 +528,10 @@ def capture(
         }
     )
     write_result(maps, out, overwrite=overwrite, extra_files=extra_files)
+    for p in plans:  # the result folder is new: no earlier render to protect
+        relighting.render_plan(maps, p, out=out, overwrite=True)
+    if export_request is not None:
+        export_maps(maps, **export_request)
     return maps, Path(out)
 
 

@@ -1,7 +1,7 @@
 """Engine-ready SVBRDF texture sets: loose PNG/EXR maps, packed maps per engine preset, a glTF 2.0 ``.glb`` quad.
 
-Every file, channel layout, encoding and convention is listed in ONE table in ``docs/export.md``; this module is
-the only place where export encodings are decided. Summary:
+Every file, channel layout, encoding and convention is a row of the ``export`` layout of :mod:`matcap.formats` (the
+one table of map file formats; users' copies: ``docs/export.md``, ``docs/formats.md``). Summary:
 
 * Tangent space. Capture normals are camera-space (x right, y up, z toward the camera). The exported material is a
   flat sample whose UVs are the image axes (U right, V up, image row 0 = V 1), so with tangent T = +U = +x,
@@ -25,69 +25,40 @@ from __future__ import annotations
 import json
 import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from matcap import imageio
+from matcap import formats, imageio
 from matcap.errors import MatcapError
+from matcap.formats import (  # noqa: F401  (the normal conventions, kept importable from here)
+    NORMAL_CONVENTIONS,
+    camera_to_tangent,
+    decode_normal,
+    encode_normal,
+    tangent_frame,
+    tangent_to_camera,
+)
 from scenes.materialmaps import MaterialMaps
 
 FORMAT_VERSION = 1
 DEFAULTS = {"base_color": (0.8, 0.8, 0.8), "roughness": 0.5, "metallic": 0.0, "occlusion": 1.0}
-FOLD_Z = 1e-3
+#: The files of a texture set (``NAME_<key>.png`` ...): channels, bits, colour space, normal convention.
+TEXTURES = formats.LAYOUTS["export"]
 
 
 # ------------------------------------------------------------------------------------------------ presets as data
 @dataclass(frozen=True)
-class Texture:
-    """One PNG: ``channels`` names the source of each channel (1, 3 or 4 channels).
-
-    Sources: ``base_color.r|g|b`` (sRGB-encoded), ``normal_gl.x|y|z`` / ``normal_dx.x|y|z`` ((n + 1) / 2),
-    ``roughness``, ``smoothness`` (1 - roughness), ``metallic``, ``occlusion`` (baked from the height map, or 1),
-    ``mask``, ``0``, ``1``.
-    """
-
-    key: str  # file name is NAME_<key>.png
-    channels: tuple[str, ...]
-    bits: int
-    colorspace: str  # "sRGB" or "linear"
-    description: str
-
-
-@dataclass(frozen=True)
 class Preset:
     name: str
     normal: str  # default normal convention, "gl" or "dx"
-    extra: tuple[Texture, ...] = ()
+    extra: tuple[formats.MapFile, ...] = ()  # files of TEXTURES added to the common set
     # engine input -> (texture key, channel(s) used, engine import setting)
     slots: dict[str, tuple[str, str, str]] = field(default_factory=dict)
     notes: str = ""
 
-
-RGB_BASE = ("base_color.r", "base_color.g", "base_color.b")
-TEXTURES: dict[str, Texture] = {
-    t.key: t
-    for t in (
-        Texture("basecolor", RGB_BASE, 8, "sRGB", "base colour (albedo), sRGB-encoded"),
-        Texture("normal", ("normal_gl.x", "normal_gl.y", "normal_gl.z"), 16, "linear",
-                "tangent-space normal, OpenGL (+Y up), (n + 1) / 2"),
-        Texture("normal_dx", ("normal_dx.x", "normal_dx.y", "normal_dx.z"), 16, "linear",
-                "tangent-space normal, DirectX (-Y, G = 1 - G of the OpenGL map)"),
-        Texture("roughness", ("roughness",), 16, "linear", "perceptual roughness (glTF / Principled)"),
-        Texture("metallic", ("metallic",), 16, "linear", "metalness"),
-        Texture("orm", ("occlusion", "roughness", "metallic"), 16, "linear",
-                "R ambient occlusion (from the height map; 1 with occlusion off), G roughness, B metallic "
-                "(glTF metallicRoughness / Unreal ORM)"),
-        Texture("mask", ("mask",), 8, "linear", "255 where the captured surface is valid, 0 elsewhere"),
-        Texture("occlusion", ("occlusion",), 16, "linear",
-                "ambient occlusion baked from the height map (1 = open sky); also in ORM R / mask map G"),
-    )
-}
-UNITY_MASKMAP = Texture("maskmap", ("metallic", "occlusion", "1", "smoothness"), 16, "linear",
-                        "Unity HDRP mask map: R metallic, G occlusion, B detail mask (1), A smoothness = 1 - roughness")
 
 PRESETS: dict[str, Preset] = {
     p.name: p
@@ -102,7 +73,7 @@ PRESETS: dict[str, Preset] = {
             "Normal": ("normal_dx", "RGB", "Compression Settings: Normalmap (sRGB off)"),
             "Ambient Occlusion / Roughness / Metallic": ("orm", "R / G / B", "Compression Settings: Masks (sRGB off)"),
         }, "Unreal Engine: DirectX normal map and the packed ORM texture."),
-        Preset("unity-hdrp", "gl", (UNITY_MASKMAP,), {
+        Preset("unity-hdrp", "gl", (TEXTURES["maskmap"],), {
             "Base Map": ("basecolor", "RGB", "sRGB (Color Texture) on"),
             "Mask Map": ("maskmap", "R metallic, G occlusion, B detail mask, A smoothness", "sRGB (Color Texture) off"),
             "Normal Map": ("normal", "RGB", "Texture Type: Normal map"),
@@ -116,92 +87,13 @@ PRESETS: dict[str, Preset] = {
         }, "Blender Principled BSDF: OpenGL normal map; all maps but base colour Non-Color."),
     )
 }
-NORMAL_CONVENTIONS = ("gl", "dx")
-
-
-# ------------------------------------------------------------------------------------------------ tangent space
-def tangent_frame(normal: np.ndarray, mask: np.ndarray, frame: str = "camera") -> np.ndarray:
-    """3×3 matrix whose rows are T, B, N of the flat sample in camera space (see module doc)."""
-    if frame == "camera":
-        return np.eye(3)
-    if frame != "fit":
-        raise ValueError(f"unknown tangent frame {frame!r}; choose 'camera' or 'fit'")
-    n0 = np.asarray(normal, np.float64)[np.asarray(mask, bool)].sum(axis=0)
-    if not np.isfinite(n0).all() or np.linalg.norm(n0) < 1e-9 or n0[2] <= 0:
-        return np.eye(3)
-    n0 /= np.linalg.norm(n0)
-    t = np.array([1.0, 0.0, 0.0]) - n0[0] * n0
-    t /= np.linalg.norm(t)
-    return np.stack([t, np.cross(n0, t), n0])
-
-
-def camera_to_tangent(normal: np.ndarray, mask: np.ndarray, frame: str | np.ndarray = "camera") -> np.ndarray:
-    """Camera-space normals (H, W, 3) -> OpenGL tangent-space unit normals of the flat sample (z >= 1e-3).
-
-    Off-mask and zero normals become (0, 0, 1).
-    """
-    mask = np.asarray(mask, bool)
-    m = tangent_frame(normal, mask, frame) if isinstance(frame, str) else np.asarray(frame, np.float64)
-    n = np.nan_to_num(np.asarray(normal, np.float64)) @ m.T
-    length = np.linalg.norm(n, axis=2)
-    bad = ~mask | (length < 1e-6)
-    n = n / np.maximum(length, 1e-6)[..., None]
-    n[..., 2] = np.maximum(n[..., 2], FOLD_Z)
-    n /= np.linalg.norm(n, axis=2, keepdims=True)
-    n[bad] = (0.0, 0.0, 1.0)
-    return n.astype(np.float32)
-
-
-def tangent_to_camera(tangent: np.ndarray, mask: np.ndarray, frame: np.ndarray | None = None) -> np.ndarray:
-    """Inverse of :func:`camera_to_tangent` (up to folding): unit camera-space normals, 0 off-mask."""
-    m = np.eye(3) if frame is None else np.asarray(frame, np.float64)
-    n = np.asarray(tangent, np.float64) @ m
-    n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-8)
-    return np.where(np.asarray(mask, bool)[..., None], n, 0.0).astype(np.float32)
-
-
-def encode_normal(tangent: np.ndarray, convention: str = "gl") -> np.ndarray:
-    """Unit tangent-space normals -> (n + 1) / 2 in [0, 1]; ``"dx"`` flips green (G = 1 - G)."""
-    enc = (np.asarray(tangent, np.float32) + 1.0) * 0.5
-    if convention == "dx":
-        enc[..., 1] = 1.0 - enc[..., 1]
-    elif convention != "gl":
-        raise ValueError(f"normal convention must be 'gl' or 'dx', got {convention!r}")
-    return enc
-
-
-def decode_normal(encoded: np.ndarray, convention: str = "gl") -> np.ndarray:
-    """Inverse of :func:`encode_normal`, renormalised."""
-    n = np.asarray(encoded, np.float64) * 2.0 - 1.0
-    if convention == "dx":
-        n[..., 1] = -n[..., 1]
-    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
-    return n.astype(np.float32)
 
 
 # ------------------------------------------------------------------------------------------------ sources
 def _sources(maps: MaterialMaps, frame: np.ndarray) -> tuple[dict[str, np.ndarray], list[str]]:
-    """Per-channel sources in [0, 1] (already encoded), and the BRDF maps that are missing."""
-    h, w = maps.shape
-    full = maps.with_defaults(DEFAULTS["base_color"], DEFAULTS["roughness"], DEFAULTS["metallic"])
-    tangent = camera_to_tangent(maps.normal, maps.mask, frame)
-    gl, dx = encode_normal(tangent, "gl"), encode_normal(tangent, "dx")
-    base = imageio.linear_to_srgb(np.clip(np.nan_to_num(full.base_color), 0.0, 1.0))
-    rough = np.clip(np.nan_to_num(full.roughness, nan=DEFAULTS["roughness"]), 0.0, 1.0)
-    src = {
-        "roughness": rough,
-        "smoothness": 1.0 - rough,
-        "metallic": np.clip(np.nan_to_num(full.metallic), 0.0, 1.0),
-        "occlusion": np.full((h, w), DEFAULTS["occlusion"], np.float32),
-        "mask": maps.mask.astype(np.float32),
-        "0": np.zeros((h, w), np.float32),
-        "1": np.ones((h, w), np.float32),
-    }
-    for i, c in enumerate("rgb"):
-        src[f"base_color.{c}"] = base[..., i]
-    for i, c in enumerate("xyz"):
-        src[f"normal_gl.{c}"] = gl[..., i]
-        src[f"normal_dx.{c}"] = dx[..., i]
+    """Per-channel sources of the table (missing BRDF maps filled with :data:`DEFAULTS`), and the BRDF maps that
+    are missing."""
+    src = formats.sources(maps, frame=frame, defaults=DEFAULTS)
     missing = [k for k in ("base_color", "roughness", "metallic") if getattr(maps, k) is None]
     return src, missing
 
@@ -215,9 +107,11 @@ def _brdf_source(channel: str) -> str | None:
     return None
 
 
-def _stack(src: dict[str, np.ndarray], tex: Texture) -> np.ndarray:
-    planes = [src[c] for c in tex.channels]
-    return planes[0] if len(planes) == 1 else np.stack(planes, axis=2)
+def _channel_names(tex: formats.MapFile) -> list[str]:
+    """The channel list written into NAME.json (normal maps name their convention: normal_gl.x ...)."""
+    if tex.normal:
+        return [f"normal_{tex.normal}.{c}" for c in "xyz"]
+    return list(tex.channels)
 
 
 # ------------------------------------------------------------------------------------------------ provenance
@@ -233,7 +127,9 @@ def _find_keys(obj: Any, pattern: str, path: str = "") -> list[tuple[str, Any]]:
 
 
 def provenance(meta: dict[str, Any]) -> dict[str, Any]:
-    """Model name(s) and licence(s) recorded in a result's ``capture.json`` (``"unknown"`` when not recorded)."""
+    """Model name(s) and licence(s) recorded in a result's ``capture.json`` (``"unknown"`` when not recorded), as
+    ``{target: {"model": name, "license": text}}`` (cards spell the key ``license``; an old ``licence`` is read
+    too)."""
     models: dict[str, Any] = {}
     recorded = meta.get("models") if isinstance(meta.get("models"), dict) else {}
     for target, info in recorded.items():
@@ -242,12 +138,12 @@ def provenance(meta: dict[str, Any]) -> dict[str, Any]:
         card = info.get("card") if isinstance(info.get("card"), dict) else {}
         name = info.get("name") or card.get("name") or info.get("weights") or card.get("preset") or "unknown"
         licences = [v for _, v in _find_keys(info, r"licen[cs]e")]
-        models[target] = {"model": str(name), "licence": str(licences[0]) if licences else "unknown"}
+        models[target] = {"model": str(name), "license": str(licences[0]) if licences else "unknown"}
     if not models:
         names = [v for k, v in _find_keys(meta, r"^(model|model_name|weights)$")]
         licences = [v for _, v in _find_keys(meta, r"licen[cs]e")]
         models["all"] = {"model": str(names[0]) if names else "unknown",
-                         "licence": str(licences[0]) if licences else "unknown"}
+                         "license": str(licences[0]) if licences else "unknown"}
     return models
 
 
@@ -260,14 +156,10 @@ def _safe_name(name: str) -> str:
 
 
 def _load(maps: MaterialMaps | str | os.PathLike) -> tuple[MaterialMaps, str | None]:
+    """The maps, and the default export name (:func:`matcap.formats.default_name`)."""
     if isinstance(maps, MaterialMaps):
         return maps, None
-    folder = Path(maps)
-    if not folder.is_dir():
-        raise MatcapError(f"{folder}: not a result folder")
-    from matcap.results import read_result
-
-    return read_result(folder), folder.resolve().name
+    return formats.load_maps(maps), formats.default_name(maps)
 
 
 def check_preset(preset: str) -> str:
@@ -275,6 +167,43 @@ def check_preset(preset: str) -> str:
     if preset not in PRESETS:
         raise MatcapError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     return preset
+
+
+def check_options(
+    out: str | os.PathLike,
+    *,
+    name: str | None = None,
+    preset: str = "gltf",
+    normal: str | None = None,
+    height: bool = True,
+    mesh: bool = False,
+    height_method: str = "frankot-chellappa",
+    frame: str = "camera",
+    ao_radius: float | None = None,
+    overwrite: bool = False,
+    glb: bool = True,
+    occlusion: bool = True,
+) -> None:
+    """One-line errors for bad :func:`export` settings (everything that does not need the maps), so that a caller
+    can check them before expensive work (``matcap capture --export``). Takes :func:`export`'s keywords."""
+    from matcap.height import METHODS
+
+    check_preset(preset)
+    if normal is not None and normal not in NORMAL_CONVENTIONS:
+        raise MatcapError(f"unknown normal convention {normal!r}; choose gl or dx")
+    if height_method not in METHODS:
+        raise MatcapError(f"unknown height method {height_method!r}; choose one of {', '.join(METHODS)}")
+    if mesh and not height:
+        raise MatcapError("a mesh needs the height map; do not combine mesh with height=False")
+    if frame not in ("camera", "fit"):
+        raise MatcapError(f"unknown tangent frame {frame!r}; choose 'camera' or 'fit'")
+    if name is not None:
+        _safe_name(name)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise MatcapError(f"{out} exists and is not a folder")
+    if ao_radius is not None and not ao_radius >= 1:
+        raise MatcapError(f"the occlusion radius must be at least 1 pixel, got {ao_radius}")
 
 
 def export(
@@ -293,7 +222,8 @@ def export(
     occlusion: bool = True,
     ao_radius: float | None = None,
 ) -> dict[str, str]:
-    """Write the texture set of ``maps`` (a MaterialMaps or a result folder) into ``out``.
+    """Write the texture set of ``maps`` (a MaterialMaps or any map source :func:`matcap.formats.load_maps`
+    reads: a result folder, an earlier export, a texture set, a ``.glb``) into ``out``.
 
     name: file prefix (default: the result folder's name, else ``"material"``). preset: one of :data:`PRESETS`.
     normal: ``"gl"`` / ``"dx"``; ``None`` = the preset's convention. ``NAME_normal.png`` is always OpenGL;
@@ -304,28 +234,20 @@ def export(
     off: occlusion 1. Refuses to replace existing files
     unless ``overwrite``. Returns {file key: path written}.
     """
-    from matcap.height import METHODS, ambient_occlusion, height_mesh, integrate_normals
+    from matcap.height import ambient_occlusion, height_mesh, integrate_normals
 
-    spec = PRESETS[check_preset(preset)]
+    check_options(out, name=name, preset=preset, normal=normal, height=height, mesh=mesh, height_method=height_method,
+                  frame=frame, ao_radius=ao_radius)
+    spec = PRESETS[preset]
     normal = spec.normal if normal is None else normal
-    if normal not in NORMAL_CONVENTIONS:
-        raise MatcapError(f"unknown normal convention {normal!r}; choose gl or dx")
-    if height_method not in METHODS:
-        raise MatcapError(f"unknown height method {height_method!r}; choose one of {', '.join(METHODS)}")
-    if mesh and not height:
-        raise MatcapError("a mesh needs the height map; do not combine mesh with height=False")
     maps, folder_name = _load(maps)
     name = _safe_name(name or folder_name or "material")
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise MatcapError(f"{out} exists and is not a folder")
     if not np.isfinite(maps.normal).all():
         raise MatcapError("normal map holds NaN or Inf values")
     if not maps.mask.any():
         raise MatcapError("the mask is empty: nothing to export")
 
-    if ao_radius is not None and not ao_radius >= 1:
-        raise MatcapError(f"the occlusion radius must be at least 1 pixel, got {ao_radius}")
     m = tangent_frame(maps.normal, maps.mask, frame)
     src, missing = _sources(maps, m)
     hmap = how = None
@@ -359,14 +281,10 @@ def export(
             filled.setdefault(tex.key, []).append(f"{s} = {DEFAULTS[s]}")
         written_tex.append(tex)
 
-    paths = {t.key: out / f"{name}_{t.key}.png" for t in written_tex}
-    if height:
-        paths["height"] = out / f"{name}_height.exr"
-    if mesh:
-        paths["mesh"] = out / f"{name}_mesh.ply"
-    if glb:
-        paths["glb"] = out / f"{name}.glb"
-    paths["json"] = out / f"{name}.json"
+    paths = {t.key: t.path(out, name=name) for t in written_tex}
+    for key, wanted in (("height", height), ("mesh", mesh), ("glb", glb), ("json", True)):
+        if wanted:
+            paths[key] = TEXTURES[key].path(out, name=name)
     existing = [str(p) for p in paths.values() if p.exists()]
     if existing and not overwrite:
         raise MatcapError(f"{existing[0]} already exists ({len(existing)} file(s) of this export); "
@@ -375,32 +293,28 @@ def export(
 
     files: dict[str, dict[str, Any]] = {}
     for tex in written_tex:
-        imageio.write_png(paths[tex.key], _stack(src, tex), bits=tex.bits)
+        formats.write_file(out, tex, src, name=name)
         files[tex.key] = {
-            "file": paths[tex.key].name, "channels": list(tex.channels), "bits": tex.bits,
-            "colorspace": tex.colorspace, "description": tex.description,
+            "file": paths[tex.key].name, "channels": _channel_names(tex), "bits": tex.bits,
+            "colorspace": tex.colour, "description": tex.description,
         }
     height_info = None
     if height:
-        imageio.write_exr(paths["height"], hmap)
+        src["height"] = hmap
+        formats.write_file(out, TEXTURES["height"], src, name=name)
         height_info = {"method": how, "range": [float(hmap[maps.mask].min()), float(hmap[maps.mask].max())]}
         files["height"] = {
             "file": paths["height"].name, "channels": ["Y"], "bits": 32, "colorspace": "linear",
-            "description": f"height along +N in pixel units (1 = one pixel width), zero mean over the mask, "
-                          f"0 off-mask; {how}",
+            "description": f"{TEXTURES['height'].description}; {how}",
         }
         if mesh:
             surface = height_mesh(hmap, maps.mask, maps.base_color)
             with imageio.atomic_path(paths["mesh"]) as tmp:
                 surface.export(tmp, file_type="ply")
-            files["mesh"] = {"file": paths["mesh"].name, "description":
-                             "binary PLY, one vertex per masked pixel, x right / y up / z height, pixel units, "
-                             "sRGB vertex colours"}
+            files["mesh"] = {"file": paths["mesh"].name, "description": TEXTURES["mesh"].description}
     if glb:
         imageio.write_bytes_atomic(paths["glb"], build_glb(maps, src, missing, name, occlusion))
-        files["glb"] = {"file": paths["glb"].name, "description":
-                        "glTF 2.0 quad (width 1, height H/W, facing +Z, +Y up) with a metallic-roughness "
-                        "material; 8-bit textures inside"}
+        files["glb"] = {"file": paths["glb"].name, "description": TEXTURES["glb"].description}
 
     h, w = maps.shape
     info = {
@@ -428,7 +342,7 @@ def export(
         "model": provenance(maps.meta),
         "constant_maps": dict(maps.meta.get("constant_maps") or {}),  # maps set by hand (--constant)
     }
-    imageio.write_text_atomic(paths["json"], json.dumps(info, indent=2) + "\n")
+    formats.write_json(paths["json"], info)
     return {k: str(p) for k, p in paths.items()}
 
 
@@ -452,23 +366,26 @@ def build_glb(maps: MaterialMaps, src: dict[str, np.ndarray], missing: list[str]
     uv = np.array([[0, 1], [1, 1], [0, 0], [1, 0]], np.float64)  # trimesh UVs: v up (glTF flips on export)
     faces = np.array([[0, 2, 3], [0, 3, 1]])
     kwargs: dict[str, Any] = {"name": name, "doubleSided": False}
+    table = formats.LAYOUTS["glb"]
     cut = not maps.mask.all()
     if "base_color" not in missing or cut:
-        rgb = [src[c] for c in RGB_BASE]
-        kwargs["baseColorTexture"] = _pil(np.stack(rgb + ([src["mask"]] if cut else []), axis=2))
+        spec = table["baseColorTexture"]
+        if not cut:
+            spec = replace(spec, channels=spec.channels[:3])
+        kwargs["baseColorTexture"] = _pil(formats.pixels(spec, src))
         if cut:
             kwargs["alphaMode"] = "MASK"
             kwargs["alphaCutoff"] = 0.5
     else:
         kwargs["baseColorFactor"] = [*DEFAULTS["base_color"], 1.0]
     if not {"roughness", "metallic"} <= set(missing):
-        kwargs["metallicRoughnessTexture"] = _pil(np.stack([src["occlusion"], src["roughness"], src["metallic"]], 2))
+        kwargs["metallicRoughnessTexture"] = _pil(formats.pixels(table["metallicRoughnessTexture"], src))
         kwargs["roughnessFactor"], kwargs["metallicFactor"] = 1.0, 1.0
     else:
         kwargs["roughnessFactor"], kwargs["metallicFactor"] = float(DEFAULTS["roughness"]), float(DEFAULTS["metallic"])
-    kwargs["normalTexture"] = _pil(np.stack([src[f"normal_gl.{c}"] for c in "xyz"], axis=2))
+    kwargs["normalTexture"] = _pil(formats.pixels(table["normalTexture"], src))
     if occlusion:
-        kwargs["occlusionTexture"] = _pil(np.repeat(src["occlusion"][..., None], 3, axis=2))
+        kwargs["occlusionTexture"] = _pil(formats.pixels(table["occlusionTexture"], src))
     material = PBRMaterial(**kwargs)
     quad = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_normals=np.tile([0.0, 0.0, 1.0], (4, 1)),
                            visual=trimesh.visual.TextureVisuals(uv=uv, material=material), process=False)
@@ -518,99 +435,7 @@ def _add_tangents(glb: bytes, tangent: tuple[float, float, float, float]) -> byt
             + struct.pack("<I4s", len(binary), b"BIN\0") + bytes(binary))
 
 
-def _float_image(img) -> np.ndarray:
-    arr = np.asarray(img)
-    if arr.dtype == np.uint8:
-        return arr.astype(np.float32) / 255.0
-    if arr.dtype == np.uint16:
-        return arr.astype(np.float32) / 65535.0
-    return arr.astype(np.float32)
-
-
-def maps_from_glb(path: str | os.PathLike) -> MaterialMaps:
-    """Read the material of a glb written by :func:`export` back into linear :class:`MaterialMaps`.
-
-    Base colour is sRGB-decoded; roughness / metallic come from the metallicRoughness texture's G / B times the
-    factors; the mask from the base colour alpha (all valid without one); normals are decoded as OpenGL tangent
-    space = camera space of the flat sample. Texture rows follow the quad's UVs (image top = V 1).
-    """
-    import trimesh
-
-    try:
-        loaded = trimesh.load(str(path), force="scene")
-    except Exception as exc:  # trimesh raises many kinds for broken files
-        raise MatcapError(f"{path}: cannot read glb ({exc})") from None
-    geoms = list(loaded.geometry.values())
-    if len(geoms) != 1 or not hasattr(geoms[0].visual, "material"):
-        raise MatcapError(f"{path}: expected one textured quad, found {len(geoms)} geometries")
-    quad = geoms[0]
-    mat = quad.visual.material
-    if mat.normalTexture is None:
-        raise MatcapError(f"{path}: material has no normal texture")
-    # which image row is the top of the quad? (our quads: the +y vertices have v = 1 in trimesh's v-up UVs)
-    top = quad.vertices[:, 1] >= quad.vertices[:, 1].max() - 1e-9
-    flip_rows = float(np.mean(quad.visual.uv[top, 1])) < 0.5
-
-    def image(img) -> np.ndarray:
-        arr = _float_image(img)
-        return arr[::-1] if flip_rows else arr
-
-    nimg = image(mat.normalTexture.convert("RGB"))
-    h, w = nimg.shape[:2]
-
-    def factor(value, default: float) -> float:
-        return default if value is None else float(value)
-
-    if mat.baseColorTexture is not None:
-        rgba = image(mat.baseColorTexture.convert("RGBA"))
-        base = imageio.srgb_to_linear(rgba[..., :3])
-        mask = rgba[..., 3] >= 0.5
-    else:
-        base, mask = None, np.ones((h, w), bool)
-    bcf = getattr(mat, "baseColorFactor", None)
-    if bcf is not None:
-        f = np.asarray(bcf, np.float32)
-        f = f / 255.0 if np.asarray(bcf).dtype == np.uint8 else f
-        if base is None:
-            base = np.broadcast_to(f[:3], (h, w, 3)).copy()
-        else:
-            base = base * f[:3]
-    rf, mf = factor(mat.roughnessFactor, 1.0), factor(mat.metallicFactor, 1.0)
-    if mat.metallicRoughnessTexture is not None:
-        mr = image(mat.metallicRoughnessTexture.convert("RGB"))
-        rough, metal = mr[..., 1] * rf, mr[..., 2] * mf
-    else:
-        rough, metal = np.full((h, w), rf, np.float32), np.full((h, w), mf, np.float32)
-    normal = tangent_to_camera(decode_normal(nimg, "gl"), mask)
-    return MaterialMaps(normal=normal, mask=mask, base_color=base, roughness=rough, metallic=metal,
-                        meta={"source": str(path)})
-
-
 # ------------------------------------------------------------------------------------------------ read back
-def read_texture_set(json_path: str | os.PathLike) -> MaterialMaps:
-    """Read an exported loose texture set (``NAME.json`` and its PNG/EXR files) back into linear MaterialMaps."""
-    json_path = Path(json_path)
-    try:
-        info = json.loads(json_path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise MatcapError(f"{json_path}: cannot read export description ({exc})") from None
-    folder, files = json_path.parent, info["files"]
-
-    def stored(key: str) -> np.ndarray | None:
-        if key not in files:
-            return None
-        return _float_image(imageio.read_image(folder / files[key]["file"]).pixels)
-
-    mask = stored("mask")[..., 0] >= 0.5
-    frame = np.asarray(info["conventions"]["tangent_frame"]["rows_T_B_N_in_camera_space"], np.float64)
-    normal = tangent_to_camera(decode_normal(stored("normal"), "gl"), mask, frame)
-    base = stored("basecolor")
-    rough, metal = stored("roughness"), stored("metallic")
-    height = imageio.read_exr(folder / files["height"]["file"]) if "height" in files else None
-    return MaterialMaps(
-        normal=normal, mask=mask,
-        base_color=None if base is None else imageio.srgb_to_linear(base),
-        roughness=None if rough is None else rough[..., 0],
-        metallic=None if metal is None else metal[..., 0],
-        height=height, meta={"export": info},
-    )
+#: Reading an export back is :func:`matcap.formats.load_maps` (any map source); these are its two readers.
+maps_from_glb = formats.read_glb
+read_texture_set = formats.read_export

@@ -18,8 +18,6 @@ The folder is built in a temporary sibling and renamed into place when complete.
 from __future__ import annotations
 
 import html
-import json
-import os
 import sys
 import types
 import shutil
@@ -30,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from matcap.errors import MatcapError
+from matcap.imageio import write_json_atomic, write_text_atomic
 from matcap.relight import (
     TONEMAPS,
     build_lights,
@@ -148,22 +147,16 @@ def orbit_lights(n: int, kind: str = "directional", elevation: float = 40.0, dis
 
 
 def _map_images(maps, folder: Path) -> dict[str, str]:
-    """Display PNGs of the four maps (normal as (n+1)/2, base colour sRGB, roughness/metallic grey)."""
-    from matcap.imageio import linear_to_srgb, write_png
+    """Display PNGs of the four maps (the ``gallery`` layout of :mod:`matcap.formats`: normal as (n+1)/2, base
+    colour sRGB, roughness / metallic grey; missing maps shown with their defaults, black off-mask)."""
+    from matcap import formats
 
-    full = maps.with_defaults()
-    m = maps.mask[..., None]
-    shown = {
-        "normal": np.where(m, (maps.normal + 1.0) * 0.5, 0.0),
-        "basecolor": np.where(m, linear_to_srgb(full.base_color), 0.0),
-        "roughness": np.where(maps.mask, full.roughness, 0.0),
-        "metallic": np.where(maps.mask, full.metallic, 0.0),
-    }
-    folder.mkdir(parents=True, exist_ok=True)
+    src = formats.sources(maps, defaults={"base_color": (0.8, 0.8, 0.8), "roughness": 0.5, "metallic": 0.0},
+                          masked=True)
     out = {}
-    for name, arr in shown.items():
-        write_png(folder / f"{name}.png", arr, bits=8)
-        out[name] = f"maps/{name}.png"
+    for spec in formats.files_of("gallery", ("normal", "basecolor", "roughness", "metallic")):
+        formats.write_file(folder, spec, src)
+        out[spec.key] = spec.file
     return out
 
 
@@ -298,7 +291,7 @@ def gallery(
     timings: dict[str, float] = {}
 
     with output_dir(out, overwrite) as tmp:
-        info: dict = {"source": src_text, "maps": _map_images(maps, tmp / "maps"), "defaulted_maps": defaulted}
+        info: dict = {"source": src_text, "maps": _map_images(maps, tmp), "defaulted_maps": defaulted}
         (tmp / "renders").mkdir()
         renders, tiles = [], []
         t = time.perf_counter()
@@ -342,30 +335,12 @@ def gallery(
                 '<p><img class="sheet" src="" alt="orbit contact sheet"></p>', "")
         else:
             page = _page(info)
-        (tmp / "index.html").write_text(page, encoding="utf-8")
+        write_text_atomic(tmp / "index.html", page)
         timings["total_s"] = time.perf_counter() - t0
         info["timings"] = {k: round(v, 3) for k, v in timings.items()}
-        (tmp / "gallery.json").write_text(json.dumps(info, indent=2, default=str), encoding="utf-8")
-        _publishable(tmp)
+        write_json_atomic(tmp / "gallery.json", info)
     info["out"] = str(Path(out))
     return info
-
-
-def _publishable(folder: Path) -> None:
-    """Temporary files/folders are created private (0600/0700); give the page the usual umask modes."""
-    umask = os.umask(0)
-    os.umask(umask)
-    for p in [folder, *folder.rglob("*")]:
-        try:
-            p.chmod((0o777 if p.is_dir() else 0o666) & ~umask)
-        except OSError:
-            pass
-
-
-def gallery_files(out: str | os.PathLike) -> list[Path]:
-    """The main files of a gallery folder (for checks)."""
-    out = Path(out)
-    return [out / "index.html", out / "envs.png", out / "orbit.gif", out / "orbit_sheet.png"]
 
 
 # ``from matcap import gallery`` gives this module; make it callable (same as matcap.relight).

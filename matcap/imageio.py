@@ -1,8 +1,9 @@
 """Image files in and out, with explicit bit depth and colour encoding.
 
 Readers return the stored numbers (``uint8``, ``uint16`` or ``float32``) plus a description; converting to
-linear float is a separate, explicit step (:func:`to_linear_float`). Writers are atomic: they write a temporary
-file in the destination folder and rename it into place, so a crash never leaves a half-written image.
+linear float is a separate, explicit step (:func:`to_linear_float`). Writers are atomic (:mod:`scenes.atomic`,
+re-exported here: ``atomic_path``, ``write_text_atomic``, ``write_json_atomic``): they write a temporary file in the
+destination folder and rename it into place, so a crash never leaves a half-written image.
 
 Formats: PNG (8/16-bit), JPEG, TIFF (8/16-bit/float), OpenEXR (float, via the OpenEXR package; Mitsuba's EXR
 I/O can deadlock, see platform notes), Radiance HDR (via OpenCV). OpenCV keeps 16-bit exact; imageio does not.
@@ -19,6 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from matcap.errors import MatcapError
+from scenes.atomic import (  # noqa: F401  (the one atomic-write helper, re-exported for matcap's writers)
+    atomic_path,
+    json_text,
+    write_bytes_atomic,
+    write_json_atomic,
+    write_text_atomic,
+)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
 
@@ -246,34 +254,6 @@ def to_linear_float(img: StoredImage, decode_srgb_8bit: bool = True) -> tuple[np
 
 
 # ----------------------------------------------------------------------------------------------- writing
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike):
-    """Yield a temporary path next to ``path`` (same suffix); rename it onto ``path`` on success."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    try:
-        yield tmp
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; give the usual permissions
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
-def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(data)
-
-
-def write_text_atomic(path: str | os.PathLike, text: str) -> None:
-    write_bytes_atomic(path, text.encode("utf-8"))
 
 
 def quantize(x: np.ndarray, bits: int) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""Installed models (`networks/weights/`): listing, and installing a trained run's weights with a model card."""
+"""Installed models (`networks/weights/`): listing, installing a trained run's weights with a model card, and
+converting the published SDM-UniPS checkpoints (``matcap weights import``)."""
 from __future__ import annotations
 
 import json
@@ -100,3 +101,55 @@ def install(weights: str | os.PathLike, name: str, *, fp16: bool = True, overwri
         save_file(state, tmp, metadata=meta)
     write_text_atomic(dst.with_suffix(".md"), card_markdown(name, config, card, notes))
     return dst
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def import_published(files: list[str | os.PathLike], out: str | os.PathLike, *,
+                     overwrite: bool = False) -> list[dict[str, Any]]:
+    """Convert the published SDM-UniPS checkpoints (``nml.pytmodel`` / ``brdf.pytmodel``; read with
+    ``weights_only=True``, never unpickled) into ``out/normal.safetensors`` / ``out/brdf.safetensors`` with the
+    config and a model card (source file, sha256, license) in the metadata. Every file is read and checked before
+    any is written. Returns ``[{"source", "dest", "target", "parameters"}]``."""
+    from networks.checkpoint import PUBLISHED_LICENSE, import_published as read_published, save_weights
+    from networks.model import build_model
+
+    out_dir = Path(out)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise MatcapError(f"--out {out_dir} exists and is not a folder")
+    converted: dict[str, tuple] = {}
+    for name in files:
+        path = Path(name)
+        config, state = read_published(path)
+        target = config.target
+        if target in converted:
+            raise MatcapError(f"two {target} checkpoints given ({converted[target][0]} and {path})")
+        dest = out_dir / f"{target}.safetensors"
+        if dest.exists() and not overwrite:
+            raise MatcapError(f"{dest} exists; pass --overwrite to replace it")
+        converted[target] = (path, config, state, dest)
+    done = []
+    for target, (path, config, state, dest) in converted.items():
+        card = {
+            "name": f"sdm-unips-{target}-published",
+            "architecture": "SDM-UniPS (Ikehata, CVPR 2023)",
+            "preset": "paper",
+            "target": target,
+            "source_file": path.name,
+            "source_sha256": _sha256(path),
+            "license": PUBLISHED_LICENSE,
+            "commercial_use": False,
+            "redistribute": False,
+        }
+        save_weights(dest, build_model(config, state), config, card)
+        done.append({"source": str(path), "dest": str(dest), "target": target,
+                     "parameters": sum(v.numel() for v in state.values())})
+    return done

@@ -19,11 +19,13 @@ import sys
 import types
 import re
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Sequence
 
 import numpy as np
 
+from matcap import formats
 from matcap.errors import MatcapError
 from scenes.materialmaps import MaterialMaps
 
@@ -38,134 +40,17 @@ def default_envmap_path() -> Path:
 
 
 # --------------------------------------------------------------------------------------------- inputs
+#: Any map source (result, export, texture set, .glb, synthetic scene): the one loader of matcap.formats.
+load_maps = formats.load_maps
+downsample_maps = formats.downsample_maps
 
 
-def _find(folder: Path, stem: str) -> Path | None:
-    for suffix in (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr"):
-        p = folder / f"{stem}{suffix}"
-        if p.is_file():
-            return p
-    return None
-
-
-def _resize(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    import cv2
-
-    return cv2.resize(arr, size, interpolation=cv2.INTER_AREA)
-
-
-def maps_from_texture_set(folder: str | os.PathLike, max_size: int | None = None) -> MaterialMaps:
-    """Read a PBR texture set: ``basecolor`` (sRGB), ``arm``/``orm`` (R occlusion, G roughness, B metallic,
-    linear) or ``roughness`` (+ optional ``metallic``), ``normal_gl`` (OpenGL tangent space, +Y up; ``normal``
-    is taken as OpenGL too; ``normal_dx`` has its green flipped). Missing maps are left None (defaults at render
-    time). The whole image is the mask. ``max_size`` downsamples (area) so the longer side is at most that.
-    """
-    from matcap.imageio import read_image, to_linear_float
-
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise MatcapError(f"{folder}: not a folder")
-    base = _find(folder, "basecolor") or _find(folder, "base_color") or _find(folder, "albedo")
-    packed = _find(folder, "arm") or _find(folder, "orm")
-    rough = _find(folder, "roughness")
-    metal = _find(folder, "metallic") or _find(folder, "metalness")
-    normal_path, flip_green = _find(folder, "normal_gl") or _find(folder, "normal"), False
-    if normal_path is None and _find(folder, "normal_dx") is not None:
-        normal_path, flip_green = _find(folder, "normal_dx"), True
-    if base is None and normal_path is None:
-        raise MatcapError(f"{folder}: no basecolor.* or normal_gl.* texture (not a texture set)")
-
-    def linear(path: Path, srgb: bool) -> np.ndarray:
-        return to_linear_float(read_image(path), decode_srgb_8bit=srgb)[0]
-
-    def grey(path: Path) -> np.ndarray:
-        x = linear(path, False)
-        # single-channel files come back repeated; packed files (roughness in G, R = B = 1) use G
-        return x[..., 1]
-
-    shape = None
-    arrays: dict[str, np.ndarray | None] = {"base_color": None, "roughness": None, "metallic": None, "normal": None}
-    if base is not None:
-        img = read_image(base)
-        x, _ = to_linear_float(img, decode_srgb_8bit=True)
-        if img.pixels.dtype == np.uint16:  # a 16-bit basecolor file is still sRGB-encoded
-            from matcap.imageio import srgb_to_linear
-
-            x = srgb_to_linear(x)
-        arrays["base_color"] = x
-    if packed is not None:
-        x = linear(packed, False)
-        arrays["roughness"], arrays["metallic"] = x[..., 1], x[..., 2]
-    if rough is not None:
-        arrays["roughness"] = grey(rough)
-    if metal is not None:
-        arrays["metallic"] = grey(metal)
-    if normal_path is not None:
-        n = linear(normal_path, False) * 2.0 - 1.0
-        if flip_green:
-            n[..., 1] *= -1.0
-        arrays["normal"] = n
-    for value in arrays.values():
-        if value is not None:
-            shape = shape or value.shape[:2]
-    h, w = shape
-    target = (w, h)
-    if max_size and max(h, w) > max_size:
-        s = max_size / max(h, w)
-        target = (max(1, round(w * s)), max(1, round(h * s)))
-    for key, value in arrays.items():
-        if value is not None and (value.shape[1], value.shape[0]) != target:
-            arrays[key] = _resize(np.ascontiguousarray(value), target)
-    normal = arrays["normal"]
-    if normal is None:
-        normal = np.zeros((target[1], target[0], 3), np.float32)
-        normal[..., 2] = 1.0
-    normal = normal / np.maximum(np.linalg.norm(normal, axis=2, keepdims=True), 1e-6)
-    return MaterialMaps(
-        normal=normal,
-        mask=np.ones((target[1], target[0]), bool),
-        base_color=arrays["base_color"],
-        roughness=arrays["roughness"],
-        metallic=arrays["metallic"],
-        meta={"source": str(folder), "kind": "texture set", "normal_convention": "OpenGL tangent = camera space"},
-    )
-
-
-def load_maps(source, max_size: int | None = None) -> MaterialMaps:
-    """A ``MaterialMaps`` from a ``MaterialMaps``, a capture result folder (``normal.exr``) or a texture set."""
-    if isinstance(source, MaterialMaps):
-        return source
-    folder = Path(source)
-    if not folder.is_dir():
-        raise MatcapError(f"{folder}: no such folder (expected a capture result or a texture set)")
-    if (folder / "normal.exr").is_file():
-        from matcap.results import read_result
-
-        maps = read_result(folder)
-        if max_size and max(maps.shape) > max_size:
-            maps = downsample_maps(maps, max_size)
-        return maps
-    return maps_from_texture_set(folder, max_size=max_size)
-
-
-def downsample_maps(maps: MaterialMaps, max_size: int) -> MaterialMaps:
-    """Area-downsample every map so the longer side is at most ``max_size`` (normals renormalised)."""
-    h, w = maps.shape
-    if max(h, w) <= max_size:
-        return maps
-    s = max_size / max(h, w)
-    size = (max(1, round(w * s)), max(1, round(h * s)))
-    mask = _resize(maps.mask.astype(np.float32), size) > 0.5
-    n = _resize(maps.normal, size)
-    n = n / np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-6)
-    n[~mask] = 0.0
-
-    def r(x):
-        return None if x is None else _resize(np.ascontiguousarray(x), size)
-
-    return MaterialMaps(normal=n, mask=mask, base_color=r(maps.base_color), roughness=r(maps.roughness),
-                        metallic=r(maps.metallic), height=None if maps.height is None else r(maps.height) * s,
-                        meta=dict(maps.meta))
+def maps_from_texture_set(folder: str | os.PathLike, max_side: int | None = None, *,
+                          max_size: int | None = None) -> MaterialMaps:
+    """A foreign PBR texture set folder (:func:`matcap.formats.read_texture_set`: Substance / Poly Haven /
+    ambientCG / plain ``basecolor`` ``normal_gl`` ``arm`` names), area-downsampled so that the longer side is at
+    most ``max_side`` (``max_size`` is its former name)."""
+    return formats.load_maps(formats.read_texture_set(folder), max_side=max_side or max_size)
 
 
 def check_spp(spp: int) -> int:
@@ -299,25 +184,11 @@ def tonemap(linear: np.ndarray, mode: str = "aces") -> np.ndarray:
 def write_render(stem: str | os.PathLike, linear: np.ndarray, coverage: np.ndarray | None = None,
                  tonemap_mode: str = "aces") -> tuple[Path, Path]:
     """Write ``<stem>.exr`` (linear RGB) and ``<stem>.png`` (8-bit sRGB tone mapped; RGBA if ``coverage``)."""
-    from matcap.imageio import write_exr, write_png
-
-    stem = Path(stem)
-    exr, png = stem.with_name(stem.name + ".exr"), stem.with_name(stem.name + ".png")
-    write_exr(exr, linear)
-    rgb = tonemap(linear, tonemap_mode)
+    display = tonemap(linear, tonemap_mode)
     if coverage is not None and float(coverage.min()) < 1.0:
         # un-premultiply so the transparent edge keeps its colour
-        rgb = tonemap(linear / np.maximum(coverage[..., None], 1e-3), tonemap_mode)
-        rgb = np.concatenate([rgb, coverage[..., None].astype(np.float32)], axis=2)
-    write_png(png, rgb, bits=8)
-    umask = os.umask(0)
-    os.umask(umask)
-    for p in (exr, png):  # atomic writers create 0600 files
-        try:
-            p.chmod(0o666 & ~umask)
-        except OSError:
-            pass
-    return exr, png
+        display = tonemap(linear / np.maximum(coverage[..., None], 1e-3), tonemap_mode)
+    return formats.write_render(stem, linear, display, coverage)
 
 
 def _safe_name(text: str) -> str:
@@ -382,6 +253,146 @@ def build_lights(
     return jobs
 
 
+def file_lights(lights_path, image: int | None, source=None, *, exposure: float = 0.0
+                ) -> list[tuple[str, list, dict[str, np.ndarray]]]:
+    """The render of input ``image`` under its light estimated by the fit: ``[("input_<k>", lights, envmaps)]``.
+
+    ``lights_path``: a lights.json (default: ``source``/lights.json when ``source`` is a result folder). The
+    entry's directional / point light is used as it is and its SH ambient becomes an environment map
+    (:func:`matcap.refine.lightfile.entry_to_lights`); ``exposure`` scales them all by 2**EV.
+    """
+    from matcap.refine.lightfile import entry_for_image, entry_to_lights, read_lights
+    from scenes.lights import DirectionalLight, EnvironmentLight, PointLight
+
+    if image is None:
+        raise MatcapError("--lights needs --image K: the input image to re-render under its estimated light")
+    if isinstance(image, bool) or not isinstance(image, (int, np.integer)):
+        raise MatcapError(f"--image must be an image index (0, 1, ...), got {image!r}")
+    if lights_path is None:
+        if not isinstance(source, (str, os.PathLike)) or not Path(source).is_dir():
+            raise MatcapError("--image needs --lights FILE (a lights.json written by the fit)")
+        lights_path = Path(source) / "lights.json"
+        if not lights_path.is_file():
+            raise MatcapError(f"{lights_path}: no such file (pass --lights FILE, or run the fit first)")
+    if not np.isfinite(exposure):
+        raise MatcapError("exposure must be a finite number")
+    gain = float(2.0 ** exposure)
+    entry = entry_for_image(read_lights(lights_path), int(image), str(lights_path))
+    lights, envmaps = entry_to_lights(entry)
+    scaled: list = []
+    for light in lights:
+        if isinstance(light, DirectionalLight):
+            scaled.append(DirectionalLight(light.direction, tuple(gain * v for v in light.irradiance)))
+        elif isinstance(light, PointLight):
+            scaled.append(PointLight(light.position, tuple(gain * v for v in light.intensity)))
+        else:
+            scaled.append(EnvironmentLight(source=light.source, rotation_deg=light.rotation_deg, scale=gain))
+    return [(f"input_{int(image)}", scaled, envmaps)]
+
+
+@dataclass
+class RelightPlan:
+    """Checked relight settings with the environment maps already read (:func:`plan`); :func:`render_plan` renders
+    them for any maps. ``jobs``: ``[(name, lights, envmap pixels)]``, one render each."""
+
+    jobs: list
+    spp: int
+    size: object = None
+    seed: int = 0
+    tonemap_mode: str = "aces"
+
+    @property
+    def names(self) -> list[str]:
+        return [name for name, _, _ in self.jobs]
+
+
+def plan(
+    *,
+    env=None,
+    rotate: float = 0.0,
+    exposure: float = 0.0,
+    point=None,
+    intensity=None,
+    directional=None,
+    irradiance=None,
+    spp: int | None = None,
+    size=None,
+    seed: int = 0,
+    tonemap_mode: str = "aces",
+    lights=None,
+    image: int | None = None,
+    source=None,
+) -> RelightPlan:
+    """Check relight settings and read the environment maps once (arguments as :func:`relight`), before any
+    expensive work: bad input fails here with a one-line error. ``lights`` / ``image``: the lights.json entry of
+    one input photo instead of env / point / directional lights (:func:`file_lights`; ``source``: the result
+    folder whose lights.json is the default)."""
+    from renderers.relight import DEFAULT_SPP
+
+    spp = check_spp(DEFAULT_SPP if spp is None else int(spp))
+    if tonemap_mode not in TONEMAPS:
+        raise MatcapError(f"tone mapping must be one of {', '.join(TONEMAPS)}, got {tonemap_mode!r}")
+    if size is not None and not (isinstance(size, int) or (isinstance(size, str) and size.strip().isdigit())):
+        parse_size(size)
+    if lights is not None or image is not None:
+        given = [name for name, v in (("env", env), ("point", point), ("directional", directional),
+                                      ("intensity", intensity), ("irradiance", irradiance)) if v is not None]
+        if rotate:
+            given.append("rotate")
+        if given:
+            raise MatcapError(f"--lights/--image re-render an input under its estimated light; they do not combine "
+                              f"with --{', --'.join(given)}")
+        jobs = file_lights(lights, image, source, exposure=exposure)
+    else:
+        if env is None and point is None and directional is None:
+            files = env_paths(None)
+        else:
+            files = env_paths(env) if env is not None else []
+        jobs = build_lights(files, rotate=rotate, exposure=exposure, point=point, intensity=intensity,
+                            directional=directional, irradiance=irradiance)
+    names = [name for name, _, _ in jobs]
+    if len(set(names)) != len(names):
+        raise MatcapError("two environment maps have the same name; rename one")
+    return RelightPlan(jobs, spp, size, seed, tonemap_mode)
+
+
+def _targets(out: Path, names: Sequence[str], overwrite: bool) -> list[Path]:
+    if out.exists() and not out.is_dir():
+        raise MatcapError(f"{out} exists and is not a folder")
+    targets = []
+    for name in names:
+        stem = out / f"relight_{name}"
+        for suffix in (".exr", ".png"):
+            if stem.with_name(stem.name + suffix).exists() and not overwrite:
+                raise MatcapError(f"{stem}{suffix} already exists; pass --overwrite to replace it")
+        targets.append(stem)
+    return targets
+
+
+def render_plan(maps: MaterialMaps, how: RelightPlan, *, out=None, overwrite: bool = False,
+                progress: bool = False) -> list[np.ndarray]:
+    """Render ``maps`` for each job of ``how``; with ``out``, write ``relight_<name>.exr/.png`` there (refused
+    before the first render when one exists, unless ``overwrite``). Returns (H, W, 3) linear float32 images."""
+    from renderers.relight import mask_coverage, render
+
+    width, height = fit_size(maps, how.size)
+    targets = _targets(Path(out), how.names, overwrite) if out is not None else []
+    images = []
+    iterator = how.jobs
+    if progress and len(how.jobs) > 1:
+        from tqdm import tqdm
+
+        iterator = tqdm(how.jobs, desc="relight", unit="render")
+    for i, (name, lights, pixels) in enumerate(iterator):
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            img = render(maps, lights, pixels, spp=how.spp, size=(width, height), seed=how.seed)
+        images.append(img)
+        if out is not None:
+            write_render(targets[i], img, mask_coverage(maps.mask, width, height), how.tonemap_mode)
+    return images
+
+
 def relight(
     maps_or_result_dir,
     *,
@@ -399,64 +410,28 @@ def relight(
     seed: int = 0,
     tonemap_mode: str = "aces",
     progress: bool = False,
+    lights=None,
+    image: int | None = None,
 ) -> list[np.ndarray]:
     """Render the maps under new light; returns one (H, W, 3) linear float32 image per render.
 
-    maps_or_result_dir: ``MaterialMaps``, a capture result folder or a texture-set folder.
+    maps_or_result_dir: ``MaterialMaps`` or any map source :func:`matcap.formats.load_maps` reads (a capture
+    result, an export, a texture set, a ``.glb``).
     env: an .exr/.hdr path, a folder of them, or a list; None = the bundled studio map unless only a point or
     directional light is given. rotate: degrees about +y (up); exposure: EV, scales every light by 2**EV.
     point: ``(X, Y, Z)`` or ``"X,Y,Z"`` in camera space (the surface spans x in [-1, 1]); intensity: W/sr, scalar
     or RGB (default pi * |P|^2: irradiance pi at the centre). directional: direction toward the light;
     irradiance (default pi). spp: samples per pixel (default ``renderers.relight.DEFAULT_SPP``). size: ``"WxH"``,
     (W, H) or the longer side. out: folder for ``relight_<name>.exr/.png`` (refuses to overwrite unless
-    ``overwrite``).
+    ``overwrite``). lights / image: re-render input ``image`` (index k) under its light from a lights.json
+    (default: the result folder's) as ``relight_input_<k>``, instead of env / point / directional lights
+    (see :func:`file_lights`).
     """
-    from renderers.relight import DEFAULT_SPP, mask_coverage, render
-
     maps = load_maps(maps_or_result_dir)
-    spp = check_spp(DEFAULT_SPP if spp is None else int(spp))
-    if tonemap_mode not in TONEMAPS:
-        raise MatcapError(f"tone mapping must be one of {', '.join(TONEMAPS)}, got {tonemap_mode!r}")
-    width, height = fit_size(maps, size)
-    if env is None and point is None and directional is None:
-        files = env_paths(None)
-    else:
-        files = env_paths(env) if env is not None else []
-    jobs = build_lights(files, rotate=rotate, exposure=exposure, point=point, intensity=intensity,
-                        directional=directional, irradiance=irradiance)
-    targets = []
-    if out is not None:
-        out = Path(out)
-        if out.exists() and not out.is_dir():
-            raise MatcapError(f"{out} exists and is not a folder")
-        names = [name for name, _, _ in jobs]
-        if len(set(names)) != len(names):
-            raise MatcapError("two environment maps have the same name; rename one")
-        for name in names:
-            stem = out / f"relight_{name}"
-            for suffix in (".exr", ".png"):
-                if stem.with_name(stem.name + suffix).exists() and not overwrite:
-                    raise MatcapError(f"{stem}{suffix} already exists; pass --overwrite to replace it")
-            targets.append(stem)
-    images = []
-    iterator = jobs
-    if progress and len(jobs) > 1:
-        from tqdm import tqdm
-
-        iterator = tqdm(jobs, desc="relight", unit="render")
-    for i, (name, lights, pixels) in enumerate(iterator):
-        with warnings.catch_warnings():
-            warnings.simplefilter("always")
-            img = render(maps, lights, pixels, spp=spp, size=(width, height), seed=seed)
-        images.append(img)
-        if out is not None:
-            write_render(targets[i], img, mask_coverage(maps.mask, width, height), tonemap_mode)
-    return images
-
-
-def relight_outputs(out, names: Iterable[str]) -> list[Path]:
-    """The files :func:`relight` writes for render ``names`` into ``out``."""
-    return [Path(out) / f"relight_{n}{s}" for n in names for s in (".exr", ".png")]
+    how = plan(env=env, rotate=rotate, exposure=exposure, point=point, intensity=intensity,
+               directional=directional, irradiance=irradiance, spp=spp, size=size, seed=seed,
+               tonemap_mode=tonemap_mode, lights=lights, image=image, source=maps_or_result_dir)
+    return render_plan(maps, how, out=out, overwrite=overwrite, progress=progress)
 
 
 # ``from matcap import relight`` gives this module (Python binds the submodule); make it callable so that

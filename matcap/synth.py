@@ -196,22 +196,19 @@ def render_spec(spec: SceneSpec, cache: AssetCache, spp: int) -> SceneResult:
 
 def write_scene(result: SceneResult, folder: Path) -> None:
     """Write one scene folder (into ``folder``, which should be a temporary name)."""
-    from matcap.imageio import write_exr, write_png
+    from matcap import formats  # the scene layout: basecolor.png here is linear ground truth
 
     folder.mkdir(parents=True, exist_ok=True)
     r, spec = result.render, result.spec
     spec_d = spec.to_dict()
     spec_d["ground_truth_stats"] = r.stats
-    (folder / "spec.json").write_text(json.dumps(spec_d, indent=1))
-    (folder / "lights.json").write_text(json.dumps({"basis": spec.basis, "basis_kind": spec.basis_kind,
-                                                    "images": result.lights}, indent=1))
+    formats.write_json(folder / "spec.json", spec_d)
+    formats.write_json(folder / "lights.json", {"basis": spec.basis, "basis_kind": spec.basis_kind,
+                                                "images": result.lights})
     for k, img in enumerate(result.images):
-        write_png(folder / f"{k:03d}.png", img, bits=16)
-    write_png(folder / "mask.png", r.mask.astype(np.float32), bits=8)
-    write_exr(folder / "normal.exr", r.normal)
-    write_png(folder / "basecolor.png", r.base_color, bits=16)
-    write_png(folder / "roughness.png", r.roughness, bits=16)
-    write_png(folder / "metallic.png", r.metallic, bits=16)
+        formats.write_scene_image(folder, k, img)
+    formats.write_scene_maps(folder, normal=r.normal, mask=r.mask, base_color=r.base_color,
+                             roughness=r.roughness, metallic=r.metallic)
     np.savez(folder / "data.npz", basis=r.basis.astype(np.float16), basis_kind=np.array(spec.basis_kind),
              normal=r.normal.astype(np.float16), mask=r.mask, object_mask=r.object_mask,
              base_color=r.base_color.astype(np.float16), roughness=r.roughness.astype(np.float16),

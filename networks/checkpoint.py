@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 import warnings
 import zlib
 from pathlib import Path
@@ -22,6 +21,7 @@ import torch
 
 from networks.config import SDMUniPSConfig, get_config
 from networks.model import SDMUniPS, build_model
+from scenes.atomic import atomic_path
 
 CONFIG_KEY = "matcap.config"
 CARD_KEY = "matcap.card"
@@ -43,16 +43,8 @@ def save_weights(path: str | os.PathLike, model: torch.nn.Module, config: SDMUni
     if not state:
         raise ValueError("model has no parameters to save")
     metadata = {"format": "pt", CONFIG_KEY: config.to_json(), CARD_KEY: json.dumps(card or {}, sort_keys=True)}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         save_file(state, tmp, metadata=metadata)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

@@ -17,11 +17,12 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from scenes.atomic import atomic_path
 
 GAMMA = 2.2
 REQUIRED = ("basis", "basis_kind", "weights", "exposure", "normal", "mask", "object_mask", "base_color", "roughness",
@@ -113,10 +114,8 @@ def pack(data: str | Path, out_dir: str | Path, max_mb: float = 40.0, start: int
         if not current:
             return
         path = out_dir / f"pack_{len(written):03d}.npz"
-        tmp = path.with_suffix(".tmp")
-        with open(tmp, "wb") as f:  # an uncompressed npz of compressed per-scene npz blobs
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:  # an uncompressed npz of compressed npz blobs
             np.savez(f, **{k: np.frombuffer(v, np.uint8) for k, v in current.items()})
-        os.replace(tmp, path)
         written.append(path)
         current, size = {}, 0
 

@@ -35,6 +35,7 @@ from networks.data import SceneCache, draw_batch, list_scenes, load_scene
 from networks.inference import check_device
 from networks.preprocess import normalize_images
 from networks.trainconfig import TrainConfig, add_arguments, check_config, config_from_args
+from scenes.atomic import atomic_path
 
 # ------------------------------------------------------------------------------------------ helpers
 
@@ -162,9 +163,8 @@ def validate(model, scenes: list[Path], target: str, device, max_scenes: int, se
 
 
 def _save_atomic(obj, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def _plain(obj):

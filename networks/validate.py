@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
+
+from scenes.atomic import write_text_atomic
 
 
 def score(weights: str | Path, data: str | Path, scenes: int | None = None, device: str = "cpu",
@@ -61,10 +62,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     text = json.dumps(result, indent=1)
     if args.json:  # atomically: a reader never sees half a file
-        out = Path(args.json)
-        tmp = out.with_name(f".{out.name}.tmp")
-        tmp.write_text(text + "\n")
-        os.replace(tmp, out)
+        write_text_atomic(args.json, text + "\n")
     print(text)
     return 0
 

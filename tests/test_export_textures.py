@@ -104,7 +104,7 @@ def test_json_describes_files_and_provenance(exported):
     assert info["files"]["basecolor"]["colorspace"] == "sRGB" and info["files"]["basecolor"]["bits"] == 8
     assert all(info["files"][k]["colorspace"] == "linear" for k in ("normal", "roughness", "metallic", "orm"))
     assert info["files"]["normal"]["bits"] == 16
-    assert info["model"]["normal"] == {"model": "sdm_unips_small.safetensors", "licence": "MIT (test fixture)"}
+    assert info["model"]["normal"] == {"model": "sdm_unips_small.safetensors", "license": "MIT (test fixture)"}
     assert info["missing"] == [] and info["filled"] == {}
     assert info["normal_convention"].startswith("DirectX")
 
@@ -176,7 +176,7 @@ def test_cli_from_result_folder(tmp_path, capsys):
     assert main(["export", str(tmp_path / "res"), "--out", str(tmp_path / "tex"), "--preset", "unreal",
                  "--no-glb"]) == 0
     info = json.loads((tmp_path / "tex" / "res.json").read_text())
-    assert info["model"]["normal"]["licence"] == "MIT (test fixture)"
+    assert info["model"]["normal"]["license"] == "MIT (test fixture)"
     back = read_texture_set(tmp_path / "tex" / "res.json")
     # result folder stores base colour as 16-bit sRGB; the export re-encodes 8-bit sRGB
     assert np.abs(linear_to_srgb(back.base_color) - linear_to_srgb(maps.base_color)).max() <= Q8 + 1e-4

@@ -49,9 +49,15 @@ def test_round_trip(tmp_path, target):
     images, mask, idx = _inputs()
     with torch.no_grad():
         a, b = model(images, mask, idx), loaded(images, mask, idx)
+    # The weights come back bit for bit; the outputs agree to rounding (oneDNN may pick other kernels for tensors
+    # loaded at another memory alignment, so exact output equality is not guaranteed).
+    ours, theirs = model.state_dict(), loaded.state_dict()
+    assert ours.keys() == theirs.keys()
+    for k in ours:
+        assert torch.equal(ours[k], theirs[k]), k
     assert a.keys() == b.keys()
     for k in a:
-        assert torch.equal(a[k], b[k])
+        assert (a[k] - b[k]).abs().max().item() < 1e-5, k
     assert read_metadata(path)[0] == cfg
 
 

@@ -57,23 +57,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _check_follow_ups(args) -> None:
-    """Fail on a bad --relight / --spp / --export / --preset before the networks run and the result is written."""
-    from matcap.errors import MatcapError
-    from matcap.relight import check_spp, env_paths, load_envmap
-
-    if args.spp is not None:
-        check_spp(args.spp)
-    for env in env_paths(args.relight) if args.relight else []:
-        load_envmap(env)
-    if args.export:
-        from matcap.export import check_preset
-
-        check_preset(args.preset)
-        if Path(args.export).exists() and not Path(args.export).is_dir():
-            raise MatcapError(f"--export {args.export} exists and is not a folder")
-
-
 def run(args) -> int:
     from matcap.capture import capture, parse_constants
     from matcap.errors import MatcapError
@@ -89,7 +72,6 @@ def run(args) -> int:
         raise MatcapError(f"--seed must be 0 or more, got {args.seed}")
     constants = parse_constants(args.constant)
     check_device(args.device)
-    _check_follow_ups(args)
     from matcap.capture import REFINE_BY_DEFAULT
 
     do_refine = REFINE_BY_DEFAULT if args.refine is None else args.refine
@@ -98,29 +80,27 @@ def run(args) -> int:
         from matcap.refine import RefineSettings
 
         settings = RefineSettings(light_model=args.refine_light, seed=args.seed, device=args.device)
+    spp = {"spp": args.spp} if args.spp is not None else {}
+    relight = [{"env": env, **spp} for env in args.relight or []] + [{"point": p, **spp} for p in args.point or []]
+    if args.spp is not None and not relight:
+        from matcap.relight import check_spp
+
+        check_spp(args.spp)
+    export = {"out": args.export, "preset": args.preset} if args.export else None
     maps, out = capture(
         photos, out, mask=args.mask, linear=args.linear, overwrite=args.overwrite,
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
-        constants=constants, max_side=args.max_side, refine=do_refine, refine_settings=settings,
+        constants=constants, max_side=args.max_side, relight=relight, export=export, refine=do_refine,
+        refine_settings=settings,
     )
     t = maps.meta["timings"]
     print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "
           f"{'normal + BRDF' if maps.has_brdf else 'normal'} maps, {t['total_s']:.1f} s"
           + (f" + refinement {t['refine_s']:.1f} s, re-render {maps.meta['refine']['psnr_db_mean']:.1f} dB"
              if "refine" in maps.meta else "") + ")")
-    if args.relight or args.point:
-        from matcap.relight import relight
-
-        kwargs = {"spp": args.spp} if args.spp is not None else {}
-        for env in args.relight or []:
-            relight(maps, env=env, out=out, **kwargs)
-        for pos in args.point or []:
-            relight(maps, point=pos, out=out, **kwargs)
+    if relight:
         print(f"relit renders in {out}/")
-    if args.export:
-        from matcap.export import export
-
-        export(maps, args.export, name=out.name, preset=args.preset, overwrite=args.overwrite)
+    if export:
         print(f"texture set in {args.export}/")
     return 0

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import shlex
 
 METHOD_NAMES = ("least-squares", "least-squares-robust", "sdm-unips", "flat")  # keep in step with runner.METHODS
@@ -57,6 +56,10 @@ def register(sub) -> None:
     p.add_argument("--linear", action="store_true",
                    help="sdm-unips: give the network 8-bit images as stored (linear), as `matcap capture --linear` "
                         "does, instead of sRGB-decoded like photos (the UW captures are linear data)")
+    p.add_argument("--refine", action="store_true",
+                   help="with --method sdm-unips: follow the network by the photo-consistent fit of lights and maps "
+                        "(matcap.refine); on captures with calibrated lights also report the angles between the "
+                        "estimated and the calibrated light directions")
     p.add_argument("--out", metavar="DIR",
                    help="write results.md, results.json and error_maps/<object>.png (0-90 deg) here (a new or "
                         "empty folder unless --overwrite)")
@@ -71,6 +74,8 @@ def register(sub) -> None:
 def command_line(args) -> str:
     """A canonical `matcap eval ...` line reproducing ``args`` (written into the tables)."""
     parts = ["matcap", "eval", args.dataset, "--method", args.method]
+    if getattr(args, "refine", False):
+        parts += ["--refine"]
     if args.reference:
         parts += ["--reference", args.reference]
     if args.objects:
@@ -91,12 +96,8 @@ def command_line(args) -> str:
 
 
 def run(args) -> int:
-    from pathlib import Path
-
     from matcap.errors import MatcapError
     from matcap.evaluation import runner
-    from matcap.imageio import write_text_atomic
-    from matcap.results import output_dir
 
     objects = [o.strip() for o in args.objects.split(",") if o.strip()] if args.objects else None
     if args.objects is not None and not objects:
@@ -105,34 +106,12 @@ def run(args) -> int:
         from networks.inference import check_device
 
         check_device(args.device)
-    out = Path(args.out) if args.out else None
-    for flag, name in (("--json", args.json), ("--markdown", args.markdown)):
-        if name and Path(name).is_dir():
-            raise MatcapError(f"{flag} {name} is a folder; give a file name")
-        if name and Path(name).exists() and not args.overwrite:
-            raise MatcapError(f"{flag} {name} already exists; pass --overwrite to replace it")
-    with contextlib.ExitStack() as stack:
-        # --out (refused when it holds files, unless --overwrite) is built in a temporary folder that replaces it
-        # only when the evaluation is complete
-        tmp = stack.enter_context(output_dir(out, args.overwrite)) if out is not None else None
-        report = runner.evaluate(
-            args.dataset, args.method, args.reference, objects=objects, max_images=args.max_images,
-            trials=args.trials, seed=args.seed, weights=args.weights, device=args.device, views=args.views,
-            max_side=args.max_side, linear=args.linear,
-            error_map_dir=(tmp / "error_maps") if tmp is not None else None, split=args.split,
-            command=command_line(args), log=None if args.quiet else runner.stderr_log,
-        )
-        for row in report["objects"]:  # name the error maps where they will be, not in the temporary folder
-            if "error_map" in row:
-                row["error_map"] = str(out / "error_maps" / Path(row["error_map"]).name)
-        md = runner.to_markdown(report)
-        js = runner.to_json(report)
-        if tmp is not None:
-            write_text_atomic(tmp / "results.md", md)
-            write_text_atomic(tmp / "results.json", js)
-    if args.json:
-        write_text_atomic(args.json, js)
-    if args.markdown:
-        write_text_atomic(args.markdown, md)
+    _, md = runner.evaluate_to_files(
+        args.dataset, args.method, args.reference, out=args.out, json_path=args.json, markdown_path=args.markdown,
+        overwrite=args.overwrite, objects=objects, max_images=args.max_images, trials=args.trials, seed=args.seed,
+        weights=args.weights, device=args.device, views=args.views, max_side=args.max_side, linear=args.linear,
+        split=args.split, command=command_line(args), log=None if args.quiet else runner.stderr_log,
+        refine=args.refine,
+    )
     print(md, end="")
     return 0

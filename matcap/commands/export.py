@@ -14,7 +14,8 @@ def register(sub) -> None:
                     "NAME_metallic.png, NAME_orm.png, NAME_height.exr, NAME_mask.png, NAME.json and NAME.glb. "
                     "See docs/export.md for every file and convention.",
     )
-    p.add_argument("result", help="capture result folder (normal.exr, mask.png, basecolor.png, ... capture.json)")
+    p.add_argument("result", help="capture result folder (normal.exr, mask.png, basecolor.png, ... capture.json); an "
+                                  "earlier export, a texture set or a .glb load too (docs/formats.md)")
     p.add_argument("--out", required=True, help="folder for the texture set (created if missing)")
     p.add_argument("--name", help="file name prefix (default: the result folder's name)")
     p.add_argument("--preset", default="gltf", choices=PRESET_NAMES,
@@ -48,18 +49,20 @@ def run(args) -> int:
     from matcap.errors import MatcapError
     from matcap.export import export
 
-    if not Path(args.result).is_dir():
+    if not Path(args.result).exists():
         raise MatcapError(f"{args.result}: no such result folder")
     if args.mesh and args.no_height:
         raise MatcapError("--mesh needs the height map; drop --no-height")
     source = args.result
     if args.constant:
         from matcap.capture import parse_constants
-        from matcap.results import read_result
+        from matcap.formats import load_maps
 
-        source = read_result(args.result).with_constants(parse_constants(args.constant))
+        source = load_maps(args.result).with_constants(parse_constants(args.constant))
+    from matcap.formats import default_name
+
     paths = export(
-        source, args.out, name=args.name or Path(args.result).resolve().name, preset=args.preset,
+        source, args.out, name=args.name or default_name(args.result), preset=args.preset,
         normal=args.normal, height=not args.no_height, mesh=args.mesh, overwrite=args.overwrite, glb=not args.no_glb,
         height_method=args.height_method,
         frame="fit" if args.fit_frame else "camera", occlusion=not args.no_ao, ao_radius=args.ao_radius,

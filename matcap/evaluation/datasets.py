@@ -58,7 +58,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from matcap import imageio
+from matcap import formats, imageio
 from matcap.errors import MatcapError
 
 #: DiLiGenT camera frame -> ours (x right, y up, z toward the viewer). Identity: the frames agree.
@@ -283,7 +283,7 @@ def load_diligent_object(folder: str | os.PathLike, group: str = "diligent",
     elif (folder / "Normal_gt.png").is_file():
         stored = imageio.read_image(folder / "Normal_gt.png")
         enc, _ = imageio.to_linear_float(stored, decode_srgb_8bit=False)
-        normal = enc.astype(np.float64) * 2.0 - 1.0
+        normal = formats.decode_normal(enc, "gl")  # (n + 1) / 2, +Y up: our camera convention
     if normal is not None:
         if normal.shape != mask.shape + (3,):
             raise MatcapError(f"{folder}: ground-truth normals are {normal.shape}, mask is {mask.shape}")
@@ -417,9 +417,11 @@ def load_synthetic_scene(folder: str | os.PathLike, group: str | None = None) ->
         images.append(arr)
         kinds.add(kind)
     mask = _read_mask(folder / "mask.png")
-    normal = imageio.read_exr(folder / "normal.exr")
+    path = formats.LAYOUTS["scene"]["normal_exr"].path(folder)  # float32 camera-space normals, as stored
+    normal = imageio.read_exr(path)
     if normal.ndim != 3:
-        raise MatcapError(f"{folder / 'normal.exr'}: expected RGB normals")
+        raise MatcapError(f"{path}: expected RGB normals")
+    imageio.check_finite(normal, str(path))
     normal = _unit_normals(normal, mask)
     spec = _read_json(folder / "spec.json") if (folder / "spec.json").is_file() else {}
     if group is None:

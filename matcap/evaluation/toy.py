@@ -79,7 +79,7 @@ def write_diligent_object(folder: str | os.PathLike, images, mask, normal, light
     names = [f"{i + 1:03d}.png" for i in range(len(images))]
     for name, img in zip(names, images, strict=True):
         imageio.write_png(folder / name, img, bits=16)
-    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    imageio.write_text_atomic(folder / "filenames.txt", "\n".join(names) + "\n")
     np.savetxt(folder / "light_directions.txt", np.asarray(lights, np.float64), fmt="%.8f")
     e = np.ones((len(images), 3)) if intensities is None else np.asarray(intensities, np.float64)
     np.savetxt(folder / "light_intensities.txt", e, fmt="%.8f")
