@@ -460,7 +460,7 @@ def capture(
     out: str | os.PathLike,
     *,
     mask: str | os.PathLike | None = None,
-    linear: bool = False,
+    linear: bool | None = False,
     overwrite: bool = False,
     constants: dict[str, float] | None = None,
     max_side: int | None = None,
@@ -476,7 +476,8 @@ def capture(
     ``constants`` (e.g. ``{"metallic": 0.0}``) replaces estimated roughness / metallic maps by constants on the mask
     (recorded in ``capture.json`` as ``constant_maps``). ``max_side`` shrinks the photos first so that their
     longer side is at most that many pixels (a quick pass over large photos; maps come out at that size).
-    ``refine`` fits lights and maps to the photos after the networks (:mod:`matcap.refine`; ``refine_settings``
+    ``linear=None`` with ``refine``: 8-bit photos are decoded as the fit decides (:func:`decide_colour`; recorded
+    in capture.json ``colour_decision``). ``refine`` fits lights and maps to the photos after the networks (:mod:`matcap.refine`; ``refine_settings``
     a :class:`matcap.refine.RefineSettings`) and adds lights.json, fit.json, residual.png, light_variation.png.
     ``relight``: an environment map path, or a dict of :func:`matcap.relight.relight` settings (``env``,
     ``point``, ``spp``, ``size`` ...), or a list of them; each renders ``relight_<name>.exr/.png`` into the result
@@ -502,7 +503,10 @@ def capture(
     export_request = _export_request(export, Path(out), overwrite)
     if export_request is not None:
         check_options(**export_request)
-    cap = load_capture(folder, mask=mask, linear=linear)
+    colour_decision = None
+    if refine and linear is None:  # neither --linear nor --srgb: let the fit decide for 8-bit photos
+        linear, colour_decision = decide_colour(folder, mask, max_side, refine_settings, estimate_kwargs)
+    cap = load_capture(folder, mask=mask, linear=bool(linear))
     original_wh = [cap.images[0].shape[1], cap.images[0].shape[0]]
     if max_side is not None:
         cap = downscale(cap, max_side)
@@ -523,6 +527,7 @@ def capture(
             "mask_file": cap.mask_file,
             "skipped_files": cap.skipped,
             "colour_handling": cap.colour,
+            **({"colour_decision": colour_decision} if colour_decision else {}),
             "image_size_wh": [cap.images[0].shape[1], cap.images[0].shape[0]],
             "photo_size_wh": original_wh,  # image_size_wh differs from it after --max-side
         }
@@ -533,6 +538,44 @@ def capture(
     if export_request is not None:
         export_maps(maps, **export_request)
     return maps, Path(out)
+
+
+def decide_colour(folder, mask, max_side, settings, estimate_kwargs, pixels: int = 6000):
+    """(linear?, record) for 8-bit photos given neither --linear nor --srgb: run the networks on the sRGB-decoded
+    photos, fit both decodings (a quick fit on ``pixels`` random object pixels) and keep the one whose re-render
+    is closer to the photos *as stored* (RMS in 8-bit units / 255). 16-bit and float photos: (False, None)."""
+    from matcap.refine import RefineSettings, refine
+
+    caps = {lin: load_capture(folder, mask=mask, linear=lin) for lin in (False, True)}
+    if "8-bit" not in caps[False].colour:
+        return False, None
+    if max_side is not None:
+        caps = {lin: downscale(c, max_side) for lin, c in caps.items()}
+    kwargs = dict(estimate_kwargs, progress=False)
+    maps = estimate(caps[False].images, caps[False].mask, **kwargs)
+    rng = np.random.default_rng(0)
+    ys, xs = np.nonzero(maps.mask)
+    pick = rng.choice(len(ys), size=min(len(ys), pixels), replace=False)
+    sub = np.zeros_like(maps.mask)
+    sub[ys[pick], xs[pick]] = True
+    maps_sub = dataclasses.replace(maps, mask=sub)
+    base = settings if settings is not None else RefineSettings()
+    quick = dataclasses.replace(base, light_iters=min(base.light_iters, 200), coarse_iters=0,
+                                fine_iters=min(base.fine_iters, 80))
+    rmse = {}
+    for lin, cap in caps.items():
+        images = [cap.images[i] for i in maps.meta["images_used"]]
+        res = refine(images, maps_sub, quick)
+        pred = np.clip(res.prediction[:, sub], 0.0, 1.0)
+        photo = np.stack([im[sub] for im in images])
+        if not lin:
+            pred, photo = imageio.linear_to_srgb(pred), imageio.linear_to_srgb(np.clip(photo, 0.0, 1.0))
+        rmse[lin] = float(np.sqrt(((pred - photo) ** 2).mean()))
+    linear = rmse[True] < rmse[False]
+    return linear, {"chosen": "linear" if linear else "srgb", "rms_8bit_linear": round(rmse[True], 5),
+                    "rms_8bit_srgb": round(rmse[False], 5),
+                    "how": "quick refinement of both decodings on a pixel subsample; RMS of the re-render against "
+                           "the stored 8-bit values / 255"}
 
 
 def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,

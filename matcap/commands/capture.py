@@ -27,7 +27,10 @@ def register(sub) -> None:
                         "(repeatable; default: the bundled model)")
     p.add_argument("--max-images", type=int, help="use at most K images (chosen at random with --seed)")
     p.add_argument("--seed", type=int, default=0, help="seed for image subset and pixel sampling (default 0)")
-    p.add_argument("--linear", action="store_true", help="take 8-bit images as linear (default: decode sRGB)")
+    cg = p.add_mutually_exclusive_group()
+    cg.add_argument("--linear", action="store_true", default=None,
+                    help="take 8-bit images as linear (default: decode sRGB; with --refine the fit decides)")
+    cg.add_argument("--srgb", dest="linear", action="store_false", help="decode 8-bit images from sRGB")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu, cuda, cuda:1 (default cpu)")
     p.add_argument("--pixel-samples", type=int, help="pixels per sample set (default: the model's)")
     p.add_argument("--bf16", action="store_true", help="run the networks under bfloat16 autocast (faster on CPU)")
@@ -88,7 +91,8 @@ def run(args) -> int:
         check_spp(args.spp)
     export = {"out": args.export, "preset": args.preset} if args.export else None
     maps, out = capture(
-        photos, out, mask=args.mask, linear=args.linear, overwrite=args.overwrite,
+        photos, out, mask=args.mask, linear=args.linear if (do_refine or args.linear is not None) else False,
+        overwrite=args.overwrite,
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
         constants=constants, max_side=args.max_side, relight=relight, export=export, refine=do_refine,
