@@ -31,6 +31,7 @@ def fitted(scene):
     return start, refine(photos, start, RefineSettings(seed=0))
 
 
+@pytest.mark.slow
 def test_recovers_normals_lights_and_glossy_roughness(scene, fitted):
     truth, lights, photos = scene
     start, res = fitted
@@ -69,6 +70,7 @@ def test_outputs_and_determinism(scene, fitted):
     assert again.lights == again2.lights
 
 
+@pytest.mark.slow
 def test_point_lights(scene):
     truth = S.sphere_maps(48)
     lights = S.known_lights(10, kind="point", distance=3.0)
