@@ -29,6 +29,9 @@ _SKIP = re.compile(
 )
 _MASK = re.compile(r"^(mask|.*\.mask)$", re.IGNORECASE)
 
+#: Whether `matcap capture` refines the maps when neither --refine nor --no-refine is given (docs/refine.md).
+REFINE_BY_DEFAULT = False
+
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "networks" / "weights"
 DEFAULT_WEIGHTS = {"normal": WEIGHTS_DIR / "normal_small.safetensors", "brdf": WEIGHTS_DIR / "brdf_small.safetensors"}
 
@@ -577,12 +580,14 @@ def capture(
     out: str | os.PathLike,
     *,
     mask: str | os.PathLike | None = None,
-    linear: bool = False,
+    linear: bool | None = False,
     overwrite: bool = False,
     constants: dict[str, float] | None = None,
     max_side: int | None = None,
     relight=None,
     export=None,
+    refine: bool = False,
+    refine_settings=None,
     **estimate_kwargs,
 ) -> tuple[MaterialMaps, Path]:
     """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`); then, optionally,
@@ -591,6 +596,9 @@ def capture(
     ``constants`` (e.g. ``{"metallic": 0.0}``) replaces estimated roughness / metallic maps by constants on the mask
     (recorded in ``capture.json`` as ``constant_maps``). ``max_side`` shrinks the photos first so that their
     longer side is at most that many pixels (a quick pass over large photos; maps come out at that size).
+    ``linear=None`` with ``refine``: 8-bit photos are decoded as the fit decides (:func:`decide_colour`; recorded
+    in capture.json ``colour_decision``). ``refine`` fits lights and maps to the photos after the networks (:mod:`matcap.refine`; ``refine_settings``
+    a :class:`matcap.refine.RefineSettings`) and adds lights.json, fit.json, residual.png, light_variation.png.
     ``relight``: an environment map path, or a dict of :func:`matcap.relight.relight` settings (``env``,
     ``point``, ``spp``, ``size`` ...), or a list of them; each renders ``relight_<name>.exr/.png`` into the result
     folder. ``export``: a folder, or a dict of :func:`matcap.export.export` settings with ``out`` (``preset``,
@@ -617,11 +625,21 @@ def capture(
         check_options(**export_request)
     # --max-side and --max-images act while reading: photos are shrunk one by one and unused ones never decoded
     max_images = estimate_kwargs.pop("max_images", None)
-    cap = load_capture(folder, mask=mask, linear=linear, max_side=max_side, max_images=max_images,
-                       seed=estimate_kwargs.get("seed", 0))
+    seed = estimate_kwargs.get("seed", 0)
+    colour_decision = None
+    if refine and linear is None:  # neither --linear nor --srgb: let the fit decide for 8-bit photos
+        linear, colour_decision = decide_colour(folder, mask, max_side, refine_settings,
+                                                dict(estimate_kwargs, max_images=max_images))
+    cap = load_capture(folder, mask=mask, linear=bool(linear), max_side=max_side, max_images=max_images, seed=seed)
     original_wh = list(cap.photo_size_wh)
     maps = estimate(cap.images, cap.mask, **estimate_kwargs).with_constants(constants)
     used = [cap.files[i] for i in maps.meta["images_used"]]
+    refine_writer = None
+    if refine:
+        maps, refine_writer = refine_maps(maps, [cap.images[i] for i in maps.meta["images_used"]], used,
+                                          cap.colour, refine_settings, constants,
+                                          progress=bool(estimate_kwargs.get("progress")), seed=seed,
+                                          device=estimate_kwargs.get("device", "cpu"))
     maps.meta["images_used"] = [cap.picked[i] for i in maps.meta["images_used"]]  # indices among all the photos
     maps.meta.update(
         {
@@ -631,23 +649,101 @@ def capture(
             "mask_file": cap.mask_file,
             "skipped_files": cap.skipped,
             "colour_handling": cap.colour,
+            **({"colour_decision": colour_decision} if colour_decision else {}),
             "image_size_wh": [cap.images[0].shape[1], cap.images[0].shape[0]],
             "photo_size_wh": original_wh,  # image_size_wh differs from it after --max-side
         }
     )
 
-    def relight_and_export(folder: Path) -> list[str]:
-        """Runs before the result folder is swapped into place: the renders are part of the atomic result, and
-        the export is done (itself atomically) before the result appears, so a run killed at any point leaves
-        either nothing or everything."""
+    def finish(folder: Path) -> list[str]:
+        """Runs before the result folder is swapped into place: the refinement's files and the renders are part
+        of the atomic result, and the export is done (itself atomically) before the result appears, so a run
+        killed at any point leaves either nothing or everything."""
+        written = list(refine_writer(folder)) if refine_writer is not None else []
         for p in plans:
             relighting.render_plan(maps, p, out=folder, overwrite=True)
         if export_request is not None:
             export_maps(maps, **export_request)
-        return [f"relight_{name}{suffix}" for p in plans for name in p.names for suffix in (".exr", ".png")]
+        return written + [f"relight_{name}{suffix}" for p in plans for name in p.names for suffix in (".exr", ".png")]
 
-    write_result(maps, out, overwrite=overwrite, extra_files=relight_and_export)
+    write_result(maps, out, overwrite=overwrite, extra_files=finish)
     return maps, Path(out)
+
+
+def decide_colour(folder, mask, max_side, settings, estimate_kwargs, pixels: int = 6000):
+    """(linear?, record) for 8-bit photos given neither --linear nor --srgb: run the networks on the sRGB-decoded
+    photos, fit both decodings (a quick fit on ``pixels`` random object pixels) and keep the one whose re-render
+    is closer to the photos *as stored* (RMS in 8-bit units / 255). 16-bit and float photos: (False, None)."""
+    from matcap.refine import RefineSettings, refine
+
+    kwargs = dict(estimate_kwargs, progress=False)
+    max_images = kwargs.pop("max_images", None)
+    caps = {lin: load_capture(folder, mask=mask, linear=lin, max_side=max_side, max_images=max_images,
+                              seed=kwargs.get("seed", 0)) for lin in (False, True)}
+    if "8-bit" not in caps[False].colour:
+        return False, None
+    maps = estimate(caps[False].images, caps[False].mask, **kwargs)
+    rng = np.random.default_rng(0)
+    ys, xs = np.nonzero(maps.mask)
+    pick = rng.choice(len(ys), size=min(len(ys), pixels), replace=False)
+    sub = np.zeros_like(maps.mask)
+    sub[ys[pick], xs[pick]] = True
+    maps_sub = dataclasses.replace(maps, mask=sub)
+    base = settings if settings is not None else RefineSettings()
+    quick = dataclasses.replace(base, light_iters=min(base.light_iters, 200), coarse_iters=0,
+                                fine_iters=min(base.fine_iters, 80))
+    rmse = {}
+    for lin, cap in caps.items():
+        images = [cap.images[i] for i in maps.meta["images_used"]]
+        res = refine(images, maps_sub, quick)
+        pred = np.clip(res.prediction[:, sub], 0.0, 1.0)
+        photo = np.stack([im[sub] for im in images])
+        if not lin:
+            pred, photo = imageio.linear_to_srgb(pred), imageio.linear_to_srgb(np.clip(photo, 0.0, 1.0))
+        rmse[lin] = float(np.sqrt(((pred - photo) ** 2).mean()))
+    linear = rmse[True] < rmse[False]
+    return linear, {"chosen": "linear" if linear else "srgb", "rms_8bit_linear": round(rmse[True], 5),
+                    "rms_8bit_srgb": round(rmse[False], 5),
+                    "how": "quick refinement of both decodings on a pixel subsample; RMS of the re-render against "
+                           "the stored 8-bit values / 255"}
+
+
+def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,
+                constants: dict[str, float] | None = None, *, progress: bool = False, seed: int = 0,
+                device: str = "cpu"):
+    """Run :func:`matcap.refine.refine` on ``maps`` (the networks' output) and the photos they came from.
+
+    Returns ``(refined maps, writer)``: ``writer(folder)`` writes lights.json / fit.json / residual.png /
+    light_variation.png and returns their names. The network maps stay recorded only in capture.json's summary
+    (``refine.normal_change_deg_mean``); ``--constant`` maps stay constant. A light-variation warning is printed.
+    """
+    import sys
+
+    from matcap.refine import RefineSettings, refine
+    from matcap.refine.outputs import write_refine_outputs
+
+    s = settings if settings is not None else RefineSettings(seed=seed, device=device)
+    held = {f"prior_{'metal' if k == 'metallic' else 'rough'}": 1e4 for k in (constants or {})}
+    if held:  # --constant maps stay where the user put them
+        s = dataclasses.replace(s, **held)
+    result = refine(images, maps, s, progress=progress)
+    if result.warning:
+        print(f"warning: {result.warning}", file=sys.stderr)
+    refined = result.maps.with_constants(constants or {})
+    refined.meta = dict(maps.meta)
+    r = result.report
+    refined.meta["refine"] = {
+        "psnr_db_mean": r["psnr_db_mean"], "normal_change_deg_mean": r["normal_change_deg_mean"],
+        "light_model": s.light_model, "seconds": r["timings"]["total_s"],
+        "weak_light_variation_fraction": r["light_variation"]["weak_fraction"],
+        "files": ["lights.json", "fit.json", "residual.png", "light_variation.png"],
+    }
+    refined.meta["timings"] = dict(maps.meta.get("timings", {}), refine_s=r["timings"]["total_s"])
+
+    def writer(folder):
+        return write_refine_outputs(folder, result, files, colour)
+
+    return refined, writer
 
 
 def parse_constants(items: list[str] | None) -> dict[str, float]:

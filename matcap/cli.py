@@ -22,6 +22,7 @@ from matcap.errors import MatcapError
 
 COMMANDS = [
     "capture",
+    "refine",
     "relight",
     "gallery",
     "export",

@@ -263,6 +263,43 @@ def build_lights(
     return jobs
 
 
+def file_lights(lights_path, image: int | None, source=None, *, exposure: float = 0.0
+                ) -> list[tuple[str, list, dict[str, np.ndarray]]]:
+    """The render of input ``image`` under its light estimated by the fit: ``[("input_<k>", lights, envmaps)]``.
+
+    ``lights_path``: a lights.json (default: ``source``/lights.json when ``source`` is a result folder). The
+    entry's directional / point light is used as it is and its SH ambient becomes an environment map
+    (:func:`matcap.refine.lightfile.entry_to_lights`); ``exposure`` scales them all by 2**EV.
+    """
+    from matcap.refine.lightfile import entry_for_image, entry_to_lights, read_lights
+    from scenes.lights import DirectionalLight, EnvironmentLight, PointLight
+
+    if image is None:
+        raise MatcapError("--lights needs --image K: the input image to re-render under its estimated light")
+    if isinstance(image, bool) or not isinstance(image, (int, np.integer)):
+        raise MatcapError(f"--image must be an image index (0, 1, ...), got {image!r}")
+    if lights_path is None:
+        if not isinstance(source, (str, os.PathLike)) or not Path(source).is_dir():
+            raise MatcapError("--image needs --lights FILE (a lights.json written by the fit)")
+        lights_path = Path(source) / "lights.json"
+        if not lights_path.is_file():
+            raise MatcapError(f"{lights_path}: no such file (pass --lights FILE, or run the fit first)")
+    if not np.isfinite(exposure):
+        raise MatcapError("exposure must be a finite number")
+    gain = float(2.0 ** exposure)
+    entry = entry_for_image(read_lights(lights_path), int(image), str(lights_path))
+    lights, envmaps = entry_to_lights(entry)
+    scaled: list = []
+    for light in lights:
+        if isinstance(light, DirectionalLight):
+            scaled.append(DirectionalLight(light.direction, tuple(gain * v for v in light.irradiance)))
+        elif isinstance(light, PointLight):
+            scaled.append(PointLight(light.position, tuple(gain * v for v in light.intensity)))
+        else:
+            scaled.append(EnvironmentLight(source=light.source, rotation_deg=light.rotation_deg, scale=gain))
+    return [(f"input_{int(image)}", scaled, envmaps)]
+
+
 @dataclass
 class RelightPlan:
     """Checked relight settings with the environment maps already read (:func:`plan`); :func:`render_plan` renders
@@ -292,9 +329,14 @@ def plan(
     size=None,
     seed: int = 0,
     tonemap_mode: str = "aces",
+    lights=None,
+    image: int | None = None,
+    source=None,
 ) -> RelightPlan:
     """Check relight settings and read the environment maps once (arguments as :func:`relight`), before any
-    expensive work: bad input fails here with a one-line error."""
+    expensive work: bad input fails here with a one-line error. ``lights`` / ``image``: the lights.json entry of
+    one input photo instead of env / point / directional lights (:func:`file_lights`; ``source``: the result
+    folder whose lights.json is the default)."""
     from renderers.relight import DEFAULT_SPP
 
     spp = check_spp(DEFAULT_SPP if spp is None else int(spp))
@@ -302,12 +344,22 @@ def plan(
         raise MatcapError(f"tone mapping must be one of {', '.join(TONEMAPS)}, got {tonemap_mode!r}")
     if size is not None and not (isinstance(size, int) or (isinstance(size, str) and size.strip().isdigit())):
         parse_size(size)
-    if env is None and point is None and directional is None:
-        files = env_paths(None)
+    if lights is not None or image is not None:
+        given = [name for name, v in (("env", env), ("point", point), ("directional", directional),
+                                      ("intensity", intensity), ("irradiance", irradiance)) if v is not None]
+        if rotate:
+            given.append("rotate")
+        if given:
+            raise MatcapError(f"--lights/--image re-render an input under its estimated light; they do not combine "
+                              f"with --{', --'.join(given)}")
+        jobs = file_lights(lights, image, source, exposure=exposure)
     else:
-        files = env_paths(env) if env is not None else []
-    jobs = build_lights(files, rotate=rotate, exposure=exposure, point=point, intensity=intensity,
-                        directional=directional, irradiance=irradiance)
+        if env is None and point is None and directional is None:
+            files = env_paths(None)
+        else:
+            files = env_paths(env) if env is not None else []
+        jobs = build_lights(files, rotate=rotate, exposure=exposure, point=point, intensity=intensity,
+                            directional=directional, irradiance=irradiance)
     names = [name for name, _, _ in jobs]
     if len(set(names)) != len(names):
         raise MatcapError("two environment maps have the same name; rename one")
@@ -368,6 +420,8 @@ def relight(
     seed: int = 0,
     tonemap_mode: str = "aces",
     progress: bool = False,
+    lights=None,
+    image: int | None = None,
 ) -> list[np.ndarray]:
     """Render the maps under new light; returns one (H, W, 3) linear float32 image per render.
 
@@ -379,12 +433,14 @@ def relight(
     or RGB (default pi * |P|^2: irradiance pi at the centre). directional: direction toward the light;
     irradiance (default pi). spp: samples per pixel (default ``renderers.relight.DEFAULT_SPP``). size: ``"WxH"``,
     (W, H) or the longer side. out: folder for ``relight_<name>.exr/.png`` (refuses to overwrite unless
-    ``overwrite``).
+    ``overwrite``). lights / image: re-render input ``image`` (index k) under its light from a lights.json
+    (default: the result folder's) as ``relight_input_<k>``, instead of env / point / directional lights
+    (see :func:`file_lights`).
     """
     maps = load_maps(maps_or_result_dir)
     how = plan(env=env, rotate=rotate, exposure=exposure, point=point, intensity=intensity,
                directional=directional, irradiance=irradiance, spp=spp, size=size, seed=seed,
-               tonemap_mode=tonemap_mode)
+               tonemap_mode=tonemap_mode, lights=lights, image=image, source=maps_or_result_dir)
     return render_plan(maps, how, out=out, overwrite=overwrite, progress=progress)
 
 

@@ -30,7 +30,10 @@ def register(sub) -> None:
                         "(repeatable; default: the bundled model)")
     p.add_argument("--max-images", type=int, help="use at most K images (chosen at random with --seed)")
     p.add_argument("--seed", type=int, default=0, help="seed for image subset and pixel sampling (default 0)")
-    p.add_argument("--linear", action="store_true", help="take 8-bit images as linear (default: decode sRGB)")
+    cg = p.add_mutually_exclusive_group()
+    cg.add_argument("--linear", action="store_true", default=None,
+                    help="take 8-bit images as linear (default: decode sRGB; with --refine the fit decides)")
+    cg.add_argument("--srgb", dest="linear", action="store_false", help="decode 8-bit images from sRGB")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu, cuda, cuda:1 (default cpu)")
     p.add_argument("--pixel-samples", type=int, help="pixels per sample set (default: the model's)")
     p.add_argument("--bf16", action="store_true", help="run the networks under bfloat16 autocast (faster on CPU)")
@@ -43,6 +46,13 @@ def register(sub) -> None:
     p.add_argument("--constant", action="append", metavar="MAP=V",
                    help="replace the estimated roughness or metallic map by V on the mask, e.g. metallic=0 for a "
                         "non-metal (repeatable; recorded in capture.json)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--refine", dest="refine", action="store_true", default=None,
+                   help="after the networks, fit the lights and the maps to the photos (docs/refine.md)")
+    g.add_argument("--no-refine", dest="refine", action="store_false",
+                   help="keep the networks' maps as they are (no lights.json / fit.json)")
+    p.add_argument("--refine-light", choices=("directional", "point"), default="directional",
+                   help="light model of the refinement: a distant light or a near point light per photo")
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
     p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")
@@ -69,6 +79,14 @@ def run(args) -> int:
         raise MatcapError(f"--seed must be 0 or more, got {args.seed}")
     constants = parse_constants(args.constant)
     check_device(args.device)
+    from matcap.capture import REFINE_BY_DEFAULT
+
+    do_refine = REFINE_BY_DEFAULT if args.refine is None else args.refine
+    settings = None
+    if do_refine:
+        from matcap.refine import RefineSettings
+
+        settings = RefineSettings(light_model=args.refine_light, seed=args.seed, device=args.device)
     spp = {"spp": args.spp} if args.spp is not None else {}
     relight = [{"env": env, **spp} for env in args.relight or []] + [{"point": p, **spp} for p in args.point or []]
     if args.spp is not None and not relight:
@@ -77,14 +95,18 @@ def run(args) -> int:
         check_spp(args.spp)
     export = {"out": args.export, "preset": args.preset} if args.export else None
     maps, out = capture(
-        photos, out, mask=args.mask, linear=args.linear, overwrite=args.overwrite,
+        photos, out, mask=args.mask, linear=args.linear if (do_refine or args.linear is not None) else False,
+        overwrite=args.overwrite,
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
-        constants=constants, max_side=args.max_side, relight=relight, export=export,
+        constants=constants, max_side=args.max_side, relight=relight, export=export, refine=do_refine,
+        refine_settings=settings,
     )
     t = maps.meta["timings"]
     print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "
-          f"{'normal + BRDF' if maps.has_brdf else 'normal'} maps, {t['total_s']:.1f} s)")
+          f"{'normal + BRDF' if maps.has_brdf else 'normal'} maps, {t['total_s']:.1f} s"
+          + (f" + refinement {t['refine_s']:.1f} s, re-render {maps.meta['refine']['psnr_db_mean']:.1f} dB"
+             if "refine" in maps.meta else "") + ")")
     if relight:
         print(f"relit renders in {out}/")
     if export:

@@ -56,6 +56,10 @@ def register(sub) -> None:
     p.add_argument("--linear", action="store_true",
                    help="sdm-unips: give the network 8-bit images as stored (linear), as `matcap capture --linear` "
                         "does, instead of sRGB-decoded like photos (the UW captures are linear data)")
+    p.add_argument("--refine", action="store_true",
+                   help="with --method sdm-unips: follow the network by the photo-consistent fit of lights and maps "
+                        "(matcap.refine); on captures with calibrated lights also report the angles between the "
+                        "estimated and the calibrated light directions")
     p.add_argument("--out", metavar="DIR",
                    help="write results.md, results.json and error_maps/<object>.png (0-90 deg) here (a new or "
                         "empty folder unless --overwrite)")
@@ -70,6 +74,8 @@ def register(sub) -> None:
 def command_line(args) -> str:
     """A canonical `matcap eval ...` line reproducing ``args`` (written into the tables)."""
     parts = ["matcap", "eval", args.dataset, "--method", args.method]
+    if getattr(args, "refine", False):
+        parts += ["--refine"]
     if args.reference:
         parts += ["--reference", args.reference]
     if args.objects:
@@ -105,6 +111,7 @@ def run(args) -> int:
         overwrite=args.overwrite, objects=objects, max_images=args.max_images, trials=args.trials, seed=args.seed,
         weights=args.weights, device=args.device, views=args.views, max_side=args.max_side, linear=args.linear,
         split=args.split, command=command_line(args), log=None if args.quiet else runner.stderr_log,
+        refine=args.refine,
     )
     print(md, end="")
     return 0

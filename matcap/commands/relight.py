@@ -23,9 +23,15 @@ def register(sub) -> None:
                    help="point light intensity in W/sr (default pi*|P|^2: irradiance pi at the centre)")
     p.add_argument("--directional", metavar="X,Y,Z", help="add a directional light coming from this direction")
     p.add_argument("--irradiance", metavar="E|R,G,B", help="directional light irradiance (default pi)")
+    p.add_argument("--lights", metavar="LIGHTS_JSON",
+                   help="re-render an input photo under its light estimated by the fit (a lights.json; default "
+                        "SOURCE/lights.json when --image is given); writes relight_input_<K>.exr/.png")
+    p.add_argument("--image", type=int, metavar="K",
+                   help="with --lights: the index of the input photo to re-render (0 = the first)")
     p.add_argument("--spp", type=int, help="samples per pixel (default 16)")
     p.add_argument("--size", metavar="WxH", help="output size (default: the maps' size); one number = longer side")
-    p.add_argument("--tonemap", choices=("aces", "clip"), default="aces", help="PNG tone mapping (default aces)")
+    p.add_argument("--tonemap", choices=("aces", "clip"),
+                   help="PNG tone mapping (default aces; clip with --lights, so the PNG compares with the photo)")
     p.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
     p.add_argument("--constant", action="append", metavar="MAP=V",
                    help="render with roughness or metallic set to V on the mask, e.g. metallic=0 (repeatable)")
@@ -40,12 +46,14 @@ def run(args) -> int:
 
     from matcap.relight import env_paths, relight
 
+    file_lights = args.lights is not None or args.image is not None
     envs = None
     if args.env:
-        envs = env_paths(args.env)
+        envs = args.env if file_lights else env_paths(args.env)  # with --lights: refused by relight() in one line
     source_path = Path(args.source)
     out = Path(args.out) if args.out else (source_path.parent if source_path.is_file() else source_path)
     source = args.source
+    tonemap = args.tonemap or ("clip" if file_lights else "aces")
     if args.constant:
         from matcap.capture import parse_constants
         from matcap.relight import load_maps
@@ -54,8 +62,8 @@ def run(args) -> int:
     images = relight(
         source, env=envs, rotate=args.rotate, exposure=args.exposure, point=args.point,
         intensity=args.intensity, directional=args.directional, irradiance=args.irradiance, spp=args.spp,
-        size=args.size, out=out, overwrite=args.overwrite, seed=args.seed, tonemap_mode=args.tonemap,
-        progress=not args.quiet,
+        size=args.size, out=out, overwrite=args.overwrite, seed=args.seed, tonemap_mode=tonemap,
+        progress=not args.quiet, lights=args.lights, image=args.image,
     )
     h, w = images[0].shape[:2]
     print(f"wrote {len(images)} render(s) ({w}x{h}) to {out}/ as relight_*.exr and relight_*.png")

@@ -68,7 +68,8 @@ def _run_robust(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext) -
                                              obj.light_intensities[idx]).normal
 
 
-def _run_sdm_unips(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext) -> np.ndarray:
+def _network_maps(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext):
+    """The images the network sees (after --linear / --max-side) and its maps for them."""
     from matcap import capture  # lazy: torch and the networks load only when this method is used
 
     state = ctx.state if ctx.state is not None else {}
@@ -84,10 +85,44 @@ def _run_sdm_unips(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext
         images, mask = capture.downscale_arrays(images, mask, ctx.max_side)
     maps = capture.estimate(images, mask, weights=ctx.weights, max_images=None, seed=seed,
                             device=ctx.device, views=ctx.views, progress=False, **kwargs)
+    return images, maps
+
+
+def _full_size_normals(obj: PSObject, maps) -> np.ndarray:
+    """The maps' normals, scored at the object's own size like every other method."""
     normal = np.asarray(maps.normal, dtype=np.float32)
-    if normal.shape[:2] != obj.mask.shape:  # scored at the object's own size, like every other method
+    if normal.shape[:2] != obj.mask.shape:
+        from matcap import capture
+
         normal = capture.upscale_normals(normal, obj.mask.shape, obj.mask)
     return normal
+
+
+def _run_sdm_unips(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext) -> np.ndarray:
+    return _full_size_normals(obj, _network_maps(obj, idx, seed, ctx)[1])
+
+
+def _refine_and_record(images: list[np.ndarray], maps, seed: int, ctx: MethodContext):
+    """Run the photo-consistent fit (``matcap.refine``) on the network's maps; keep the estimated light
+    directions (one unit vector per image, toward the light) in ``ctx.state["light_dirs"]``; return the maps."""
+    try:
+        from matcap.refine.fit import RefineSettings, refine
+    except ImportError:  # the fit lives in matcap/refine/fit.py (issue 16)
+        raise MatcapError("--refine needs the refinement stage (matcap.refine.fit), which this matcap lacks") from None
+    result = refine(images, maps, RefineSettings(seed=seed, device=ctx.device))
+    dirs = []
+    for entry in result.lights:
+        v = np.asarray(entry["direction"] if entry["kind"] == "directional" else entry["position"], np.float64)
+        dirs.append(v / max(float(np.linalg.norm(v)), 1e-12))  # a point light: seen from the plane's centre
+    if ctx.state is not None:
+        ctx.state["light_dirs"] = np.asarray(dirs)
+    return result.maps
+
+
+def _run_sdm_unips_refined(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext) -> np.ndarray:
+    """sdm-unips, then the photo-consistent fit of lights and maps to the same images (``--refine``)."""
+    images, maps = _network_maps(obj, idx, seed, ctx)
+    return _full_size_normals(obj, _refine_and_record(images, maps, seed, ctx))
 
 
 def _run_flat(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext) -> np.ndarray:
@@ -112,10 +147,30 @@ METHODS: dict[str, Method] = {
 }
 
 
-def get_method(name: str) -> Method:
+#: ``--method sdm-unips --refine``: the network, then the photo-consistent fit (lights unknown to both).
+REFINED = Method("sdm-unips+refine", False, 2,
+                 "SDM-UniPS network, then matcap.refine's fit of lights and maps to the photos (lights unknown)",
+                 _run_sdm_unips_refined)
+REFINABLE = ("sdm-unips",)
+
+
+def get_method(name: str, refine: bool = False) -> Method:
     if name not in METHODS:
         raise MatcapError(f"unknown method {name!r}; choose from {', '.join(METHODS)}")
+    if refine:
+        if name not in REFINABLE:
+            raise MatcapError(f"--refine refines the network's maps: it needs --method {' or '.join(REFINABLE)}")
+        return REFINED
     return METHODS[name]
+
+
+def light_angles(estimated: np.ndarray, calibrated: np.ndarray) -> np.ndarray:
+    """Degrees between estimated and calibrated light directions, (K, 3) each (normalised here)."""
+    a = np.asarray(estimated, np.float64)
+    b = np.asarray(calibrated, np.float64)
+    a = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+    b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
 
 
 # ----------------------------------------------------------------------------------------------- protocol
@@ -179,11 +234,16 @@ def evaluate_object(obj: PSObject, method: Method, reference: Method | None = No
         t0 = time.perf_counter()
         target = reference.run(obj, np.arange(len(obj.images)), seed, ctx)
         row["reference_seconds"] = time.perf_counter() - t0
-    per_trial, seconds = [], []
+    per_trial, seconds, light_errs = [], [], []
     for t, idx in enumerate(subsets):
+        if ctx.state is not None:
+            ctx.state.pop("light_dirs", None)
         t0 = time.perf_counter()
         pred = method.run(obj, idx, seed + t, ctx)
         seconds.append(time.perf_counter() - t0)
+        est = ctx.state.pop("light_dirs", None) if ctx.state is not None else None
+        if est is not None and obj.light_dirs is not None and len(est) == len(idx):
+            light_errs.append(light_angles(est, obj.light_dirs[idx]))
         err = metrics.angular_error_map(pred, target, obj.mask)
         per_trial.append(metrics.summarize_errors(err))
         if t == 0 and error_map is not None:
@@ -204,6 +264,11 @@ def evaluate_object(obj: PSObject, method: Method, reference: Method | None = No
         "seconds": float(np.mean(seconds)),
         "trial_mae": maes,
     })
+    if light_errs:  # estimated vs calibrated light directions (a method that estimates lights, e.g. --refine)
+        row["light_median"] = float(np.mean([np.median(e) for e in light_errs]))
+        row["light_mean"] = float(np.mean([np.mean(e) for e in light_errs]))
+        row["light_max"] = float(np.mean([np.max(e) for e in light_errs]))
+        row["light_angles"] = [float(v) for v in light_errs[0]]
     return row
 
 
@@ -229,9 +294,11 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
              weights: list[str] | None = None, device: str = "cpu", views: int = 1, max_side: int | None = None,
              linear: bool = False, error_map_dir: str | Path | None = None,
              split: str | None = "test", command: str | None = None,
-             log: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Evaluate ``method`` on every object under ``dataset``; returns the report (see :func:`to_markdown`)."""
-    m = get_method(method)
+             log: Callable[[str], None] | None = None, refine: bool = False) -> dict[str, Any]:
+    """Evaluate ``method`` on every object under ``dataset``; returns the report (see :func:`to_markdown`).
+    ``refine``: follow the network (``method="sdm-unips"``) by the photo-consistent fit; objects with calibrated
+    lights then also get the angles between estimated and calibrated light directions."""
+    m = get_method(method, refine)
     ref = get_method(reference) if reference else None
     if ref is not None and ref.name == m.name:
         raise MatcapError("--reference must differ from --method")
@@ -250,9 +317,10 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
         from matcap.capture import check_max_side  # no torch: matcap.capture loads the networks lazily
 
         check_max_side(max_side)
-    if max_side is not None and "sdm-unips" not in (m.name, ref.name if ref else None):
+    network = ("sdm-unips", REFINED.name)
+    if max_side is not None and not {m.name, ref.name if ref else None} & set(network):
         raise MatcapError("--max-side shrinks the network's input: it needs --method or --reference sdm-unips")
-    if linear and "sdm-unips" not in (m.name, ref.name if ref else None):
+    if linear and not {m.name, ref.name if ref else None} & set(network):
         raise MatcapError("--linear changes what the network sees: it needs --method or --reference sdm-unips")
     ctx = MethodContext(weights=weights, device=device, views=views, max_side=max_side, linear=linear, state={})
     rows = []
@@ -266,6 +334,8 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
         if log:
             what = (f"{row['mae']:.2f} deg mean, {row['seconds']:.2f} s" if row["status"] == "ok"
                     else row["status"])
+            if "light_median" in row:
+                what += f", lights {row['light_median']:.2f} deg median"
             log(f"[{i + 1}/{len(sources)}] {obj.name} ({obj.group}): {what}")
         del obj
     report = {
@@ -276,7 +346,7 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
         "against": ref.name if ref else "ground truth",
         "protocol": {
             "max_images": max_images, "trials": trials, "seed": seed, "views": views, "max_side": max_side,
-            "network_8bit": "as stored (linear)" if linear else "sRGB-decoded",
+            "network_8bit": "as stored (linear)" if linear else "sRGB-decoded", "refine": bool(refine),
             "subset_rng": "numpy.random.default_rng([seed, trial, K, crc32(object)])",
             "reference_uses": "all images" if ref else None,
         },
@@ -341,6 +411,15 @@ def to_markdown(report: dict[str, Any]) -> str:
                          f"{e['seconds']:.2f} |")
         else:
             lines.append(f"| {g} | {e['objects']} (0) | n/a | n/a | n/a | n/a | n/a | n/a |")
+    lit = [r for r in report["objects"] if r.get("status") == "ok" and "light_median" in r]
+    if lit:
+        lines += ["", "Estimated vs calibrated light directions (degrees, per object; mean over trials):", "",
+                  "| object | lights | median | mean | max |", "|---|---:|---:|---:|---:|"]
+        for r in lit:
+            lines.append(f"| {r['object']} | {len(r['light_angles'])} | {_deg(r['light_median'])} | "
+                         f"{_deg(r['light_mean'])} | {_deg(r['light_max'])} |")
+        lines.append(f"| all ({len(lit)}) | | {_deg(float(np.mean([r['light_median'] for r in lit])))} | "
+                     f"{_deg(float(np.mean([r['light_mean'] for r in lit])))} | |")
     if report.get("skipped_folders"):
         lines += ["", "Skipped: " + "; ".join(report["skipped_folders"])]
     return "\n".join(lines) + "\n"

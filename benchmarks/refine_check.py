@@ -1,0 +1,208 @@
+"""Photo-consistent refinement (matcap.refine), before -> after, lights unknown. Prints Markdown tables.
+
+    python benchmarks/refine_check.py sphere              # ToyPS sphere vs its analytic normals (K=16, --linear)
+    python benchmarks/refine_check.py uw [--max-side 256]  # UW captures without chrome: vs least squares with the
+                                                           # true lights; light directions vs lights.txt; held-out
+    python benchmarks/refine_check.py synthetic [--scenes 8]  # /work/data/test128-like split: normal MAE, BRDF RMSE
+    python benchmarks/refine_check.py timing [--side 512]  # one fit at side^2, K=16: seconds, peak RSS (subprocess)
+
+Every row runs the bundled networks first (the "before"), then :func:`matcap.refine.refine` (the "after").
+``--threads`` sets torch's CPU threads (default: torch's own choice).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+SHARED = REPO.parent / "shared" / "data" / "captures"
+
+
+def _models():
+    from matcap.capture import load_networks
+
+    return load_networks(None)
+
+
+def _mean_err(n, gt, m) -> float:
+    from matcap.evaluation.metrics import angular_error_map
+
+    return float(angular_error_map(n, gt, m)[m].mean())
+
+
+def _angle(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+
+def sphere(args) -> None:
+    from matcap.capture import estimate, load_capture
+    from matcap.evaluation.metrics import analytic_sphere
+    from matcap.refine import RefineSettings, refine
+
+    cap = load_capture(args.capture or SHARED / "toyps_sphere", linear=True)
+    truth, scored = analytic_sphere(cap.mask)
+    print("| ToyPS sphere, K=16 (--linear, seed 0) | mean deg | median deg | re-render PSNR dB | s |")
+    print("|---|---:|---:|---:|---:|")
+    t0 = time.perf_counter()
+    maps = estimate(cap.images, cap.mask, models=_models(), max_images=16, seed=0)
+    t_net = time.perf_counter() - t0
+    from matcap.evaluation.metrics import angular_error_map
+
+    e0 = angular_error_map(maps.normal, truth, scored)[scored]
+    print(f"| network | {e0.mean():.2f} | {np.median(e0):.2f} | | {t_net:.1f} |", flush=True)
+    imgs = [cap.images[i] for i in maps.meta["images_used"]]
+    t0 = time.perf_counter()
+    res = refine(imgs, maps, RefineSettings(seed=0))
+    e1 = angular_error_map(res.maps.normal, truth, scored & res.maps.mask)[scored & res.maps.mask]
+    print(f"| network + refine | {e1.mean():.2f} | {np.median(e1):.2f} | {res.report['psnr_db_mean']:.2f} | "
+          f"{time.perf_counter() - t0:.1f} |", flush=True)
+
+
+def uw(args) -> None:
+    from matcap.capture import downscale_arrays, estimate, upscale_normals
+    from matcap.evaluation.baselines import least_squares_ps
+    from matcap.evaluation.datasets import load_uw_object
+    from matcap.refine import RefineSettings, refine
+    from matcap.refine.fit import fit_light_only
+
+    models = _models()
+    names = args.objects.split(",")
+    print(f"UW captures (8-bit taken as linear, all 12 images, --max-side {args.max_side}); normals vs least "
+          f"squares with the true lights (mean deg); light directions vs lights.txt (median deg); re-render PSNR; "
+          f"held-out: refine on 11, fit only the 12th photo's light with the maps frozen")
+    print("| capture | network | refined | light dir median | light dir max | PSNR dB | held-out PSNR dB | "
+          "refine s |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    rows = []
+    for name in names:
+        obj = load_uw_object(SHARED / f"uw_{name}")
+        ref = least_squares_ps(obj.images, obj.light_dirs, obj.mask, obj.light_intensities).normal
+        images, mask = downscale_arrays(list(obj.images), obj.mask, args.max_side)
+        maps = estimate(images, mask, models=models, seed=0)
+        m = obj.mask
+
+        def score(n):
+            up = upscale_normals(n, m.shape, m)
+            return _mean_err(up, ref, m & (np.linalg.norm(up, axis=-1) > 0.5))
+
+        before = score(maps.normal)
+        t0 = time.perf_counter()
+        res = refine(images, maps, RefineSettings(seed=0))
+        secs = time.perf_counter() - t0
+        after = score(res.maps.normal)
+        d = [_angle(e["direction"], l) for e, l in zip(res.lights, obj.light_dirs)]
+        held = refine(images[:-1], maps, RefineSettings(seed=0))
+        ho = fit_light_only(images[-1], held.maps, RefineSettings(seed=0))["psnr_db"]
+        row = (name, before, after, float(np.median(d)), float(np.max(d)), res.report["psnr_db_mean"], ho, secs)
+        rows.append(row)
+        print("| {} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.1f} |".format(*row), flush=True)
+    a = np.array([r[1:] for r in rows], float)
+    print("| **mean** | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.1f} |".format(*a.mean(0)))
+
+
+def synthetic(args) -> None:
+    from matcap.capture import estimate
+    from matcap.evaluation.datasets import load_synthetic_scene
+    from matcap.refine import RefineSettings, refine
+    from matcap.results import read_result
+
+    models = _models()
+    root = Path(args.data)
+    scenes = sorted(p for p in root.iterdir() if p.name.startswith("scene_"))[: args.scenes]
+    print(f"`{root}` first {len(scenes)} scenes (all images): normal MAE deg; BRDF RMSE (base colour after a "
+          f"per-scene exposure fit, roughness, metallic) on the mask")
+    print("| scene | group | normal before | normal after | base before | base after | rough before | "
+          "rough after | metal before | metal after |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    acc = []
+    for sc in scenes:
+        obj = load_synthetic_scene(sc)
+        gt = read_result(sc)
+        maps = estimate(obj.images, obj.mask, models=models, seed=0)
+        res = refine(obj.images, maps, RefineSettings(seed=0))
+        m = obj.mask & maps.mask
+
+        def brdf(mp):
+            b, bt = mp.base_color[m], gt.base_color[m]
+            s = float((b * bt).sum() / max((b * b).sum(), 1e-9))  # exposure-aligned base colour
+            return (float(np.sqrt(((s * b - bt) ** 2).mean())), float(np.sqrt(((mp.roughness[m] - gt.roughness[m]) ** 2).mean())),
+                    float(np.sqrt(((mp.metallic[m] - gt.metallic[m]) ** 2).mean())))
+
+        b0, b1 = brdf(maps.with_defaults()), brdf(res.maps)
+        row = [_mean_err(maps.normal, obj.normal_gt, m), _mean_err(res.maps.normal, obj.normal_gt, m),
+               b0[0], b1[0], b0[1], b1[1], b0[2], b1[2]]
+        acc.append(row)
+        print(f"| {sc.name} | {obj.group} | " + " | ".join(f"{v:.3f}" for v in row) + " |", flush=True)
+    print("| **mean** | | " + " | ".join(f"{v:.3f}" for v in np.mean(acc, 0)) + " |")
+
+
+def timing(args) -> None:
+    """One refine at side^2 with K=16 in a fresh subprocess: seconds and peak RSS."""
+    code = f"""
+import json, resource, time, numpy as np, torch
+{'torch.set_num_threads(%d)' % args.threads if args.threads else ''}
+from matcap.refine import RefineSettings, refine
+from matcap.refine import synthetic as S
+side, k = {args.side}, 16
+truth = S.sphere_maps(side)
+rng = np.random.default_rng(0)
+# photos from the torch forward model itself (no Mitsuba: only the fit is timed)
+import torch as T
+from matcap.refine.model import shade_directional
+from matcap.evaluation.toy import cone_lights
+m = truth.mask
+n = T.from_numpy(truth.normal[m]); b = T.from_numpy(truth.base_color[m]); r = T.from_numpy(truth.roughness[m])
+L = T.from_numpy(cone_lights(k, 50.0, seed=1)).float()
+with T.no_grad():
+    px = shade_directional(n, b, r, T.zeros(len(n)), L, T.full((k, 3), 2.5), T.zeros(1, 9, 3)).numpy()
+photos = np.zeros((k, side, side, 3), np.float32); photos[:, m] = px
+start = S.perturb(truth)
+rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+t0 = time.perf_counter()
+res = refine(list(photos), start, RefineSettings(seed=0))
+print(json.dumps({{"seconds": time.perf_counter() - t0, "pixels": int(m.sum()), "timings": res.report["timings"],
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "rss_before_fit_mb": rss0 / 1024}}))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO,
+                         env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
+    if out.returncode:
+        print(out.stderr[-2000:])
+        raise SystemExit(1)
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    print(f"| fit at {args.side}^2, K=16 ({r['pixels']} object pixels) | seconds | peak RSS MB |")
+    print("|---|---:|---:|")
+    print(f"| lights {r['timings']['lights_s']:.1f} s + maps {r['timings']['maps_s']:.1f} s | {r['seconds']:.1f} | "
+          f"{r['peak_rss_mb']:.0f} |")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("what", choices=("sphere", "uw", "synthetic", "timing"))
+    ap.add_argument("--capture", help="ToyPS sphere folder (sphere)")
+    ap.add_argument("--objects", default="buddha,cat,gray,horse,owl,rock", help="UW objects (uw)")
+    ap.add_argument("--max-side", type=int, default=256, help="photo side for the UW rows (uw; default 256)")
+    ap.add_argument("--data", default="/work/data/test128", help="synthetic split (synthetic)")
+    ap.add_argument("--scenes", type=int, default=8, help="first N scenes (synthetic)")
+    ap.add_argument("--side", type=int, default=512, help="image side (timing)")
+    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    args = ap.parse_args(argv)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    {"sphere": sphere, "uw": uw, "synthetic": synthetic, "timing": timing}[args.what](args)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,73 @@
+"""`matcap refine RESULT PHOTOS`: fit lights and maps of an existing result to its photos (again)."""
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "refine",
+        help="fit the lights and the maps of a capture result to its photos (photo-consistent refinement)",
+        description="Re-run the photo-consistent refinement on a result folder written by `matcap capture`: start "
+                    "from its maps, fit per-photo lights and per-pixel normal / base colour / roughness / metallic "
+                    "to the photos, and replace the folder (atomically; needs --overwrite) or write --out.",
+    )
+    p.add_argument("result", help="result folder of `matcap capture`")
+    p.add_argument("photos", help="the photo folder the result came from")
+    p.add_argument("--out", help="write the refined result here instead of replacing RESULT")
+    p.add_argument("--mask", help="mask image (default: the result's mask.png)")
+    p.add_argument("--light", choices=("directional", "point"), default="directional",
+                   help="light model: a distant light or a near point light per photo (default directional)")
+    p.add_argument("--linear", action="store_true", help="take 8-bit photos as linear (default: as the result did)")
+    p.add_argument("--srgb", action="store_true", help="decode 8-bit photos from sRGB (default: as the result did)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    p.add_argument("--overwrite", action="store_true", help="replace RESULT (or a non-empty --out)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from matcap.capture import downscale_arrays, load_capture, refine_maps
+    from matcap.errors import MatcapError
+    from matcap.refine import RefineSettings
+    from matcap.results import check_not_replacing_inputs, check_output_dir, read_result, write_result
+    from networks.inference import check_device
+
+    if args.linear and args.srgb:
+        raise MatcapError("--linear and --srgb contradict each other; give one")
+    if args.seed < 0:
+        raise MatcapError(f"--seed must be 0 or more, got {args.seed}")
+    check_device(args.device)
+    result = Path(args.result)
+    out = Path(args.out) if args.out else result
+    if out.resolve() == result.resolve() and not args.overwrite:
+        raise MatcapError(f"{result} would be replaced by the refined result; pass --overwrite (or --out DIR)")
+    check_output_dir(out, args.overwrite)
+    check_not_replacing_inputs(out, args.photos, args.mask)
+    maps = read_result(result)
+    meta = maps.meta
+    if args.linear or args.srgb:
+        linear = bool(args.linear)
+    else:
+        linear = "--linear" in str(meta.get("colour_handling", ""))
+    cap = load_capture(args.photos, mask=args.mask, linear=linear)
+    names = meta.get("inputs") or cap.files
+    missing = [n for n in names if n not in cap.files]
+    if missing:
+        raise MatcapError(f"{args.photos}: the result used {missing[0]}, which is not in this folder")
+    images = [cap.images[cap.files.index(n)] for n in names]
+    if images[0].shape[:2] != maps.shape:
+        images, _ = downscale_arrays(images, None, max(maps.shape))
+        if images[0].shape[:2] != maps.shape:
+            raise MatcapError(f"{args.photos}: photos are {images[0].shape[1]}x{images[0].shape[0]} but the maps "
+                              f"{maps.shape[1]}x{maps.shape[0]}")
+    settings = RefineSettings(light_model=args.light, seed=args.seed, device=args.device)
+    refined, writer = refine_maps(maps, images, list(names), cap.colour, settings,
+                                  meta.get("constant_maps") or {}, progress=not args.quiet)
+    refined.meta["tool"] = "matcap refine"
+    write_result(refined, out, overwrite=True, extra_files=writer)
+    r = refined.meta["refine"]
+    print(f"wrote {out}/ (refined: re-render {r['psnr_db_mean']:.1f} dB, normals moved "
+          f"{r['normal_change_deg_mean']:.1f} deg on average, {r['seconds']:.1f} s)")
+    return 0

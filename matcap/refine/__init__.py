@@ -1,0 +1,12 @@
+"""Photo-consistent refinement of a capture: fit per-photo lights and per-pixel SVBRDF to the photos, starting
+from (and anchored to) the networks' maps. torch only (no Mitsuba). See docs/refine.md.
+
+- :mod:`matcap.refine.bsdf`: the Principled BSDF in torch (as ``renderers.relight`` renders it);
+- :mod:`matcap.refine.model`: forward model (directional / point light + order-2 SH ambient);
+- :mod:`matcap.refine.fit`: :func:`refine` (coarse to fine, robust, prior-anchored) and the diagnostics;
+- :mod:`matcap.refine.lightfile`: lights.json reader/writer and conversion to ``scenes.lights`` (relight);
+- :mod:`matcap.refine.outputs`: lights.json / fit.json / residual.png / light_variation.png.
+"""
+from matcap.refine.fit import RefineResult, RefineSettings, light_variation, refine
+
+__all__ = ["RefineResult", "RefineSettings", "light_variation", "refine"]

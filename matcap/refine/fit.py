@@ -1,0 +1,581 @@
+"""Photo-consistent refinement: fit per-image lights and per-pixel SVBRDF to the photos of one capture.
+
+Starting from the networks' maps (the *initialisation* and a *prior*), minimise
+
+    sum_p w_p sum_k mean_c rho((I_kc(p) - photo_kc(p)) / c)  +  prior(p)
+
+where ``I`` is :func:`matcap.refine.model.shade` (Principled BSDF * light + order-2 SH ambient), ``rho`` the
+Cauchy loss (shadows, interreflections and highlights the model cannot explain are outliers), ``w_p`` the
+light-variation weight (:func:`light_variation`), and the prior pulls normals, base colour, roughness and metallic
+toward the network's values (this is what stops the drift into the generalized bas-relief family).
+
+Coarse to fine:
+  1. lights: Lambertian least squares from the network normals, then a joint robust fit of the lights and of the
+     maps of a random subsample of pixels of a downsampled copy of the photos;
+  2. maps: with the lights fixed every pixel is an independent problem: Adam on all pixels at once (in chunks), on
+     a half-size copy first, whose corrections are upsampled as the start of the full-size solve.
+Photos are scaled so that their mean over the mask is 0.5 (the fit's units); lights are reported in photo units.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from matcap.errors import MatcapError
+from scenes.materialmaps import MaterialMaps
+
+LUMA = (0.2126, 0.7152, 0.0722)
+
+
+@dataclass
+class RefineSettings:
+    """Knobs of :func:`refine` (recorded in fit.json). Prior weights are per pixel, against a data term summed
+    over the images (so more photos weigh more)."""
+
+    light_model: str = "directional"  # or "point" (a near point light per photo)
+    rounds: int = 1  # >1: alternate (lights from the refined maps, maps again) this many times in all
+    joint_lights: bool = True  # the light fit also frees the subsample's maps (anchored by the prior); False:
+    # lights from the network maps alone (measured worse: UW light directions 18-24 deg instead of 6-7)
+    ambient: str = "shared"  # "shared": one SH ambient for every photo (a fixed room light); "per-image"; "none"
+    prior_normal: float = 0.5  # weight on |n - n_network|^2
+    prior_base: float = 0.5  # on mean_c (log(b + 0.02) - log(b_net + 0.02))^2
+    prior_rough: float = 0.5  # on (r - r_net)^2
+    prior_metal: float = 0.5  # on (m - m_net)^2
+    cauchy: float = 0.15  # Cauchy scale, in the fit's units (the photos' mean over the mask is 0.5)
+    light_side: int = 256  # the light fit runs on a copy downsampled to this longer side
+    light_pixels: int = 4096  # pixels of that copy in the joint light fit
+    light_iters: int = 400
+    coarse_iters: int = 100  # per-pixel iterations at half size (skipped when the maps are <= 128 px)
+    fine_iters: int = 150  # per-pixel iterations at full size
+    lr_light: float = 0.02
+    lr_pixel: float = 0.05
+    chunk: int = 32768  # pixels per chunk of the per-pixel solve (memory)
+    variation_threshold: float = 0.08  # per-pixel light variation (std / mean over photos) below this is weak
+    point_distance: float = 4.0  # start distance of point lights, in half-widths of the framing plane
+    fit_brdf: bool = True  # False: only normals are refined (base colour still is: it carries the albedo)
+    seed: int = 0
+    device: str = "cpu"
+
+
+@dataclass
+class RefineResult:
+    """maps: refined :class:`MaterialMaps`; lights: lights.json ``images`` entries (photo units); report: fit.json;
+    residual (H, W) float32 RMS re-render error / the photos' mean (NaN off-mask); variation (H, W) float32
+    light variation (NaN off-mask); warning: one line or None."""
+
+    maps: MaterialMaps
+    lights: list[dict[str, Any]]
+    report: dict[str, Any]
+    residual: np.ndarray
+    variation: np.ndarray
+    warning: str | None = None
+    prediction: np.ndarray | None = field(default=None, repr=False)  # (K, H, W, 3) re-renders, photo units
+
+
+# ----------------------------------------------------------------------------------------------- checks
+
+
+def check_inputs(images, mask: np.ndarray) -> np.ndarray:
+    """(K, H, W, 3) float32 stack of ``images``; one-line MatcapError for <2 images, NaN/Inf, all-dark photos."""
+    if len(images) < 2:
+        raise MatcapError(f"refinement needs at least 2 photos, got {len(images)}")
+    stack = np.stack([np.asarray(im, dtype=np.float32) for im in images])
+    if stack.ndim != 4 or stack.shape[3] != 3:
+        raise MatcapError(f"expected (H, W, 3) RGB photos, got {stack.shape[1:]}")
+    if mask.shape != stack.shape[1:3]:
+        raise MatcapError(f"mask is {mask.shape}, photos are {stack.shape[1:3]}")
+    bad = ~np.isfinite(stack)
+    if bad.any():
+        k = int(np.argmax(bad.reshape(len(stack), -1).any(axis=1)))
+        raise MatcapError(f"photo {k} holds NaN or Inf values; refinement needs finite pixels")
+    if not mask.any():
+        raise MatcapError("the mask is empty: nothing to refine")
+    means = stack[:, mask].mean(axis=(1, 2))
+    if not (means > 1e-6).any():
+        raise MatcapError("every photo is black on the object: nothing to fit (check the exposure)")
+    return np.clip(stack, 0.0, None)
+
+
+# ----------------------------------------------------------------------------------------------- diagnostics
+
+
+def light_variation(stack: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Per-pixel light variation (H, W): std / mean over the photos of the pixel's luminance (NaN off-mask).
+
+    Near 0 where the lighting barely changes between photos (a weak moving light under a strong fixed one, a
+    region outside a spot light): there the photos cannot tell the normal or the BRDF apart.
+    """
+    lum = np.tensordot(stack, np.float32(LUMA), axes=([3], [0]))  # (K, H, W)
+    mean = lum.mean(axis=0)
+    std = lum.std(axis=0)
+    v = np.where(mean > 1e-6, std / np.maximum(mean, 1e-6), 0.0).astype(np.float32)
+    return np.where(mask, v, np.nan).astype(np.float32)
+
+
+def variation_warning(variation: np.ndarray, mask: np.ndarray, threshold: float) -> tuple[float, str | None]:
+    """(fraction of mask pixels below ``threshold``, one-line warning or None when under 5 %)."""
+    frac = float((variation[mask] < threshold).mean())
+    if frac < 0.05:
+        return frac, None
+    return frac, (f"light variation: {frac:.0%} of the object's pixels barely change between photos (std/mean "
+                  f"< {threshold:g}); their maps are guesses and weigh less in the fit: move the light further "
+                  f"off-axis between photos (and dim any fixed light)")
+
+
+# ----------------------------------------------------------------------------------------------- helpers
+
+
+def _resize(arr: np.ndarray, hw: tuple[int, int], interp: str = "area") -> np.ndarray:
+    import cv2
+
+    flag = {"area": cv2.INTER_AREA, "linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST}[interp]
+    out = cv2.resize(np.ascontiguousarray(arr, dtype=np.float32), (hw[1], hw[0]), interpolation=flag)
+    if arr.ndim == 3 and out.ndim == 2:
+        out = out[..., None]
+    return out
+
+
+def _maps_arrays(maps: MaterialMaps) -> dict[str, np.ndarray]:
+    m = maps.with_defaults()
+    n = np.asarray(m.normal, np.float32).copy()
+    n[~m.mask] = (0.0, 0.0, 1.0)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True).clip(1e-6)
+    return {"normal": n, "base": np.clip(np.nan_to_num(m.base_color), 0, 1).astype(np.float32),
+            "rough": np.clip(np.nan_to_num(m.roughness, nan=0.5), 0, 1).astype(np.float32),
+            "metal": np.clip(np.nan_to_num(m.metallic), 0, 1).astype(np.float32)}
+
+
+def _downsample(stack: np.ndarray, mask: np.ndarray, arrays: dict[str, np.ndarray], hw: tuple[int, int]):
+    small = np.stack([_resize(im, hw) for im in stack])
+    cover = _resize(mask.astype(np.float32), hw)
+    m = cover > 0.99
+    if m.sum() < 16:
+        m = cover > 0.5
+    out = {}
+    for k, v in arrays.items():
+        out[k] = _resize(v, hw)
+    n = out["normal"]
+    out["normal"] = n / np.linalg.norm(n, axis=-1, keepdims=True).clip(1e-6)
+    return small, m, out
+
+
+class _Problem:
+    """Observations of N pixels: obs (K, N, 3), weight (N,), saturation flags, positions, priors (torch)."""
+
+    def __init__(self, torch, stack, mask, arrays, weight, sat_level, device, idx=None):
+        rows, cols = np.nonzero(mask)
+        if idx is not None:
+            rows, cols = rows[idx], cols[idx]
+        self.rows, self.cols = rows, cols
+        t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)  # noqa: E731
+        self.obs = t(stack[:, rows, cols])
+        self.sat = self.obs >= t(sat_level)[:, None, :]
+        self.weight = t(weight[rows, cols])
+        self.n0 = t(arrays["normal"][rows, cols])
+        self.b0 = t(arrays["base"][rows, cols])
+        self.r0 = t(arrays["rough"][rows, cols])
+        self.m0 = t(arrays["metal"][rows, cols])
+        from matcap.refine.model import plane_positions
+
+        h, w = mask.shape
+        self.pos = plane_positions(torch.from_numpy(rows), torch.from_numpy(cols), h, w).to(device)
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def part(self, sl) -> "_Problem":
+        """The pixels ``sl`` (a slice or an index array) of this problem."""
+        new = object.__new__(_Problem)
+        new.rows, new.cols = self.rows[sl], self.cols[sl]
+        tsl = sl if isinstance(sl, slice) else __import__("torch").from_numpy(np.asarray(sl)).to(self.obs.device)
+        new.obs, new.sat = self.obs[:, tsl], self.sat[:, tsl]
+        for k in ("weight", "n0", "b0", "r0", "m0", "pos"):
+            setattr(new, k, getattr(self, k)[tsl])
+        return new
+
+
+def _loss(torch, prob: _Problem, px, lights, s: RefineSettings, c: float, brdf: bool = True):
+    """Per-pixel loss (N,) (data + prior) and the data part alone."""
+    n = px.normal()
+    b = px.base()
+    r = px.rough() if brdf else prob.r0
+    m = px.metal() if brdf else prob.m0
+    pred = _shade(lights, prob.pos, n, b, r, m)
+    res = pred - prob.obs
+    res = torch.where(prob.sat & (res > 0), torch.zeros_like(res), res)  # clipped highlights: only a lower bound
+    rho = torch.log1p((res / c) ** 2)
+    data = rho.mean(-1).sum(0) * prob.weight
+    prior = s.prior_normal * ((n - prob.n0) ** 2).sum(-1)
+    prior = prior + s.prior_base * ((torch.log(b + 0.02) - torch.log(prob.b0 + 0.02)) ** 2).mean(-1)
+    if brdf:
+        prior = prior + s.prior_rough * (r - prob.r0) ** 2 + s.prior_metal * (m - prob.m0) ** 2
+    return data + prior, data
+
+
+def _shade(lights, pos, n, b, r, m):
+    from matcap.refine.model import shade, shade_directional
+
+    if lights.kind == "directional":
+        return shade_directional(n, b, r, m, lights.directions(), lights.log_intensity.exp(), lights.sh)
+    wo, irr = lights.incident(pos)
+    return shade(n, b, r, m, wo, irr, lights.sh)
+
+
+def _init_lights(torch, prob: _Problem, s: RefineSettings, device):
+    """Lambertian least squares per photo from the network normals and base colour (robust: two reweightings)."""
+    from matcap.refine.model import LightParams
+
+    luma = torch.tensor(LUMA, device=device)
+    n = prob.n0
+    alb = (prob.b0 * luma).sum(-1).clamp(min=0.02)
+    k_count = prob.obs.shape[0]
+    dirs, ints = [], []
+    for k in range(k_count):
+        y = (prob.obs[k] * luma).sum(-1) / alb * math.pi  # ~ E * max(n . l, 0)
+        keep = y > 0.05 * torch.quantile(y, 0.95)
+        L = torch.zeros(3, device=device)
+        for _ in range(3):
+            A, b = n[keep], y[keep]
+            if A.shape[0] < 8:
+                break
+            L = torch.linalg.lstsq(A, b[:, None]).solution[:, 0]
+            shading = n @ L
+            keep = (shading > 0.05 * shading.max().clamp(min=1e-6)) & (y > 0.02 * torch.quantile(y, 0.95))
+            err = (shading - y).abs()
+            keep &= err < 3.0 * err[keep].median().clamp(min=1e-6) + 0.05 * y.mean()
+        if not torch.isfinite(L).all() or L.norm() < 1e-6:
+            L = torch.tensor([0.0, 0.0, 1.0], device=device) * y.mean()
+        d = L / L.norm()
+        if d[2] < 0.05:  # behind the object: cannot light what the camera sees; keep it at the horizon
+            d = torch.cat([d[:2], d[2:].clamp(min=0.05)])
+            d = d / d.norm()
+        sdiff = (n @ d).clamp(min=0.0) / math.pi
+        den = ((prob.b0 * sdiff[:, None]) ** 2).sum(0).clamp(min=1e-8)
+        e = (prob.obs[k] * prob.b0 * sdiff[:, None]).sum(0) / den
+        dirs.append(d)
+        ints.append(e.clamp(min=1e-4))
+    vec = torch.stack(dirs)
+    log_i = torch.log(torch.stack(ints))
+    sh = torch.zeros(1 if s.ambient != "per-image" else k_count, 9, 3, device=device)
+    return LightParams("directional", vec, log_i, sh)
+
+
+def _to_point(torch, lights, prob: _Problem, s: RefineSettings):
+    """Directional -> point lights at ``point_distance`` from the object's centre (irradiance kept there)."""
+    from matcap.refine.model import LightParams
+
+    centre = prob.pos.mean(0)
+    d = lights.directions()
+    pos = centre[None] + s.point_distance * d
+    log_i = lights.log_intensity + 2.0 * math.log(s.point_distance)
+    return LightParams("point", pos.detach().clone(), log_i.detach().clone(), lights.sh.detach().clone())
+
+
+def _adam(torch, params, lr):
+    return torch.optim.Adam(params, lr=lr)
+
+
+# ----------------------------------------------------------------------------------------------- main
+
+
+def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
+           progress: bool | Callable[[str, int, int, float], None] = False) -> RefineResult:
+    """Fit lights and maps to the photos.
+
+    images: K (H, W, 3) float32 linear RGB photos (at the maps' size); maps: the networks' :class:`MaterialMaps`
+    (missing BRDF maps start from ``with_defaults``). Deterministic for ``settings.seed`` on one device.
+    """
+    import torch
+
+    was = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=True)  # bit-for-bit repeatable for a seed (measured)
+    try:
+        return _refine(torch, images, maps, settings, progress)
+    finally:
+        torch.use_deterministic_algorithms(was[0], warn_only=was[1])
+
+
+def _refine(torch, images, maps, settings, progress) -> RefineResult:
+    s = settings or RefineSettings()
+    if s.light_model not in ("directional", "point"):
+        raise MatcapError(f"light model must be 'directional' or 'point', got {s.light_model!r}")
+    t_start = time.perf_counter()
+    mask = np.asarray(maps.mask, bool)
+    stack = check_inputs(images, mask)
+    if stack.shape[1:3] != maps.shape:
+        raise MatcapError(f"photos are {stack.shape[2]}x{stack.shape[1]} but the maps {maps.shape[1]}x{maps.shape[0]}")
+    device = torch.device(s.device)
+    torch.manual_seed(s.seed)
+    rng = np.random.default_rng(s.seed)
+    k_count, h, w = stack.shape[:3]
+
+    scale = 0.5 / float(stack[:, mask].mean())
+    obs = stack * scale
+    sat_level = np.array([obs[k][mask].max(axis=0) * 0.999 for k in range(k_count)], np.float32)
+    sat_level = np.where(sat_level > 0, sat_level, np.inf).astype(np.float32)
+    arrays = _maps_arrays(maps)
+    variation = light_variation(stack, mask)
+    frac_weak, warning = variation_warning(variation, mask, s.variation_threshold)
+    weight = np.clip(np.nan_to_num(variation) / s.variation_threshold, 0.1, 1.0).astype(np.float32)
+    c = s.cauchy
+
+    bar = _Bar(progress, s)
+    timings: dict[str, float] = {}
+
+    # ---- 1. lights on a downsampled subsample, jointly with those pixels' maps
+    t0 = time.perf_counter()
+    f = min(1.0, s.light_side / max(h, w))
+    hw_l = (max(8, round(h * f)), max(8, round(w * f)))
+    if hw_l == (h, w):
+        obs_l, mask_l, arr_l, w_l = obs, mask, arrays, weight
+    else:
+        obs_l, mask_l, arr_l = _downsample(obs, mask, arrays, hw_l)
+        w_l = _resize(weight, hw_l)
+    n_l = int(mask_l.sum())
+    idx = np.sort(rng.choice(n_l, size=min(n_l, s.light_pixels), replace=False))
+    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx)
+    lights = _init_lights(torch, prob, s, device)
+    from matcap.refine.model import PixelParams
+
+    def joint(lights, iters, label, prob=prob, px=None):
+        if px is None:
+            px = PixelParams.from_maps(prob.n0, prob.b0, prob.r0, prob.m0)
+        light_t = [lights.vec, lights.log_intensity] + ([lights.sh] if s.ambient != "none" else [])
+        groups = [{"params": light_t, "lr": s.lr_light}]
+        if s.joint_lights:
+            groups.append({"params": px.tensors(), "lr": s.lr_pixel})
+        for g in groups:
+            for t in g["params"]:
+                t.requires_grad_(True)
+        opt = torch.optim.Adam(groups)
+        for it in range(iters):
+            opt.zero_grad()
+            per, _ = _loss(torch, prob, px, lights, s, c, s.fit_brdf)
+            loss = per.mean()
+            loss.backward()
+            opt.step()
+            bar.step(label, float(loss.detach()))
+        for t in lights.tensors():
+            t.requires_grad_(False)
+        return lights
+
+    lights = joint(lights, s.light_iters, "lights")
+    if s.light_model == "point":
+        lights = joint(_to_point(torch, lights, prob, s), s.light_iters, "point lights")
+    timings["lights_s"] = time.perf_counter() - t0
+
+    # ---- 2. per pixel, lights fixed: half size, then full size
+    t0 = time.perf_counter()
+    full = _Problem(torch, obs, mask, arrays, weight, sat_level, device)
+    px_full = PixelParams.from_maps(full.n0, full.b0, full.r0, full.m0)
+    iters_done = {"coarse": 0, "fine": 0}
+    if s.coarse_iters > 0 and max(h, w) > 128:
+        hw_c = (max(8, h // 2), max(8, w // 2))
+        obs_c, mask_c, arr_c = _downsample(obs, mask, arrays, hw_c)
+        coarse = _Problem(torch, obs_c, mask_c, arr_c, _resize(weight, hw_c), sat_level, device)
+        px_c0 = PixelParams.from_maps(coarse.n0, coarse.b0, coarse.r0, coarse.m0)
+        px_c = _solve_pixels(torch, coarse, px_c0, lights, s, c, s.coarse_iters, bar, "maps 1/2")
+        # upsample the corrections (parameter deltas), add them to the full-size start
+        delta = np.zeros(hw_c + (7,), np.float32)
+        d = torch.cat([(a - b0).reshape(len(coarse), -1) for a, b0 in zip(px_c.tensors(), px_c0.tensors())], 1)
+        delta[coarse.rows, coarse.cols] = d.cpu().numpy()
+        up = _resize(delta, (h, w), "linear")[full.rows, full.cols]
+        up_t = torch.from_numpy(up).to(device)
+        px_full = PixelParams(px_full.grad + up_t[:, 0:2], px_full.base_logit + up_t[:, 2:5],
+                              px_full.rough_logit + up_t[:, 5], px_full.metal_logit + up_t[:, 6])
+        iters_done["coarse"] = s.coarse_iters
+    px_full = _solve_pixels(torch, full, px_full, lights, s, c, s.fine_iters, bar, "maps")
+    iters_done["fine"] = s.fine_iters
+    for r in range(1, s.rounds):  # lights again from the refined maps (frozen), then the maps again
+        idx_r = np.sort(rng.choice(len(full), size=min(len(full), s.light_pixels), replace=False))
+        sub = full.part(idx_r)
+        px_sub = PixelParams(*(t[torch.from_numpy(idx_r)].detach() for t in px_full.tensors()))
+        bar.add_total(s.light_iters // 2)
+        lights = joint(lights, s.light_iters // 2, f"lights {r + 1}", sub, px_sub)
+        px_full = _solve_pixels(torch, full, px_full, lights, s, c, s.fine_iters // 2, bar, f"maps {r + 1}")
+        iters_done["fine"] += s.fine_iters // 2
+    timings["maps_s"] = time.perf_counter() - t0
+    bar.close()
+
+    # ---- 3. outputs
+    t0 = time.perf_counter()
+    pred = _predict(torch, full, px_full, lights, s)  # (K, N, 3) fit units
+    n_img = np.zeros((h, w, 3), np.float32)
+    base = np.zeros((h, w, 3), np.float32)
+    rough = np.zeros((h, w), np.float32)
+    metal = np.zeros((h, w), np.float32)
+    with torch.no_grad():
+        n_img[full.rows, full.cols] = px_full.normal().cpu().numpy()
+        base[full.rows, full.cols] = px_full.base().cpu().numpy()
+        if s.fit_brdf:
+            rough[full.rows, full.cols] = px_full.rough().cpu().numpy()
+            metal[full.rows, full.cols] = px_full.metal().cpu().numpy()
+        else:
+            rough[full.rows, full.cols] = full.r0.cpu().numpy()
+            metal[full.rows, full.cols] = full.m0.cpu().numpy()
+    obs_px = full.obs.cpu().numpy()
+    err = pred - obs_px
+    residual = np.full((h, w), np.nan, np.float32)
+    residual[full.rows, full.cols] = np.sqrt((err ** 2).mean(axis=(0, 2))) / 0.5
+    psnr = []
+    for k in range(k_count):
+        peak = float(np.percentile(obs_px[k].max(axis=1), 99.9))
+        mse = float((err[k] ** 2).mean())
+        psnr.append(10.0 * math.log10(peak ** 2 / max(mse, 1e-12)) if peak > 0 else float("nan"))
+    prediction = np.zeros((k_count, h, w, 3), np.float32)
+    prediction[:, full.rows, full.cols] = pred / scale
+    timings["outputs_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+
+    light_entries = lights_to_entries(lights, scale)
+    keep_meta = {k: v for k, v in maps.meta.items()}
+    refined = MaterialMaps(normal=n_img, mask=mask, base_color=base,
+                           roughness=rough if (maps.roughness is not None or s.fit_brdf) else None,
+                           metallic=metal if (maps.metallic is not None or s.fit_brdf) else None,
+                           height=None, meta=keep_meta)
+    n_change = np.degrees(np.arccos(np.clip((n_img[mask] * arrays["normal"][mask]).sum(-1), -1, 1)))
+    report = {
+        "psnr_db": [round(p, 3) for p in psnr],
+        "psnr_db_mean": round(float(np.mean(psnr)), 3),
+        "residual_mean": round(float(np.nanmean(residual)), 5),
+        "iterations": {"lights": s.light_iters * (2 if s.light_model == "point" else 1), **iters_done},
+        "pixels": int(mask.sum()),
+        "images": k_count,
+        "normal_change_deg_mean": round(float(n_change.mean()), 3),
+        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(frac_weak, 4),
+                            "warning": warning},
+        "photo_scale": scale,
+        "timings": {k: round(v, 3) for k, v in timings.items()},
+        "settings": asdict(s),
+    }
+    return RefineResult(refined, light_entries, report, residual, variation, warning, prediction)
+
+
+def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
+    """Adam on every pixel (independent problems once the lights are fixed), chunk by chunk."""
+    from matcap.refine.model import PixelParams
+
+    lights = type(lights)(lights.kind, *(t.detach() for t in lights.tensors()))
+    out = [t.detach().clone() for t in px0.tensors()]
+    n = len(prob)
+    chunks = [slice(i, min(i + s.chunk, n)) for i in range(0, n, s.chunk)]
+    bar.add_total(iters * len(chunks))
+    for sl in chunks:
+        part = prob.part(sl)
+        px = PixelParams(*(t[sl].clone().requires_grad_(True) for t in out))
+        opt = torch.optim.Adam(px.tensors(), lr=s.lr_pixel)
+        for it in range(iters):
+            opt.zero_grad()
+            per, _ = _loss(torch, part, px, lights, s, c, s.fit_brdf)
+            loss = per.sum()
+            loss.backward()
+            opt.step()
+            bar.step(label, float(loss.detach()) / max(1, len(part)))
+        for o, t in zip(out, px.tensors()):
+            o[sl] = t.detach()
+    return PixelParams(*out)
+
+
+def _predict(torch, prob: _Problem, px, lights, s) -> np.ndarray:
+    outs = []
+    with torch.no_grad():
+        for i in range(0, len(prob), s.chunk):
+            sl = slice(i, i + s.chunk)
+            part = prob.part(sl)
+            r = px.rough()[sl] if s.fit_brdf else part.r0
+            m = px.metal()[sl] if s.fit_brdf else part.m0
+            outs.append(_shade(lights, part.pos, px.normal()[sl], px.base()[sl], r, m).cpu().numpy())
+    return np.concatenate(outs, axis=1)
+
+
+def lights_to_entries(lights, scale: float) -> list[dict[str, Any]]:
+    """lights.json ``images`` entries (without index/file) in photo units from fitted :class:`LightParams`."""
+    out = []
+    inten = (lights.log_intensity.exp() / scale).detach().cpu().numpy()
+    sh = (lights.sh / scale).detach().cpu().numpy()
+    vec = lights.directions() if lights.kind == "directional" else lights.vec
+    vec = vec.detach().cpu().numpy()
+    for k in range(len(inten)):
+        e = {"kind": lights.kind}
+        e["direction" if lights.kind == "directional" else "position"] = [float(v) for v in vec[k]]
+        e["intensity"] = [float(v) for v in inten[k]]
+        e["sh"] = [[float(v) for v in row] for row in sh[min(k, len(sh) - 1)]]
+        out.append(e)
+    return out
+
+
+class _Bar:
+    """tqdm progress with the current loss (or a callback ``progress(label, done, total, loss)``)."""
+
+    def __init__(self, progress, s: RefineSettings):
+        self.cb = progress if callable(progress) else None
+        self.done = 0
+        self.total = s.light_iters * (2 if s.light_model == "point" else 1)
+        self.bar = None
+        if progress is True:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.total, desc="refine", unit="it", leave=False, dynamic_ncols=True)
+
+    def add_total(self, n: int) -> None:
+        self.total += n
+        if self.bar is not None:
+            self.bar.total = self.total
+            self.bar.refresh()
+
+    def step(self, label: str, loss: float) -> None:
+        self.done += 1
+        if self.bar is not None:
+            self.bar.set_description(f"refine {label}", refresh=False)
+            self.bar.set_postfix_str(f"loss {loss:.4g}", refresh=False)
+            self.bar.update(1)
+        if self.cb is not None:
+            self.cb(label, self.done, self.total, loss)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def fit_light_only(image: np.ndarray, maps: MaterialMaps, settings: RefineSettings | None = None) -> dict[str, Any]:
+    """Fit only the light of one photo (H, W, 3) to frozen ``maps`` (e.g. refined on the other photos): the
+    held-out check. Returns {"psnr_db", "light": lights.json entry (photo units)}."""
+    import torch
+
+    s = settings or RefineSettings()
+    mask = np.asarray(maps.mask, bool)
+    stack = check_inputs([image, image], mask)[:1]
+    device = torch.device(s.device)
+    torch.manual_seed(s.seed)
+    scale = 0.5 / float(stack[:, mask].mean())
+    obs = stack * scale
+    sat = np.where(obs[0][mask].max(axis=0) > 0, obs[0][mask].max(axis=0) * 0.999, np.inf)[None].astype(np.float32)
+    arrays = _maps_arrays(maps)
+    full = _Problem(torch, obs, mask, arrays, np.ones(mask.shape, np.float32), sat, device)
+    from matcap.refine.model import PixelParams
+
+    px = PixelParams.from_maps(full.n0, full.b0, full.r0, full.m0)
+    rng = np.random.default_rng(s.seed)
+    idx = np.sort(rng.choice(len(full), size=min(len(full), 4 * s.light_pixels), replace=False))
+    sub = full.part(idx)
+    px_sub = PixelParams(*(t[torch.from_numpy(idx)] for t in px.tensors()))
+    lights = _init_lights(torch, sub, s, device)
+    params = [lights.vec, lights.log_intensity] + ([lights.sh] if s.ambient != "none" else [])
+    for t in params:
+        t.requires_grad_(True)
+    opt = torch.optim.Adam(params, lr=s.lr_light)
+    for _ in range(s.light_iters):
+        opt.zero_grad()
+        per, _ = _loss(torch, sub, px_sub, lights, s, s.cauchy, s.fit_brdf)
+        per.mean().backward()
+        opt.step()
+    lights = type(lights)(lights.kind, *(t.detach() for t in lights.tensors()))
+    pred = _predict(torch, full, px, lights, s)
+    err = pred - full.obs.cpu().numpy()
+    peak = float(np.percentile(full.obs.cpu().numpy()[0].max(axis=1), 99.9))
+    psnr = 10.0 * math.log10(peak ** 2 / max(float((err ** 2).mean()), 1e-12))
+    return {"psnr_db": psnr, "light": lights_to_entries(lights, scale)[0]}

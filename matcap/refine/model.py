@@ -1,0 +1,198 @@
+"""The forward model of the photo-consistent fit (torch, differentiable, any device).
+
+Camera space (x right, y up, z toward the camera); orthographic view, so the direction toward the viewer is +z
+at every pixel. One photo k at pixel p::
+
+    I_k(p) = principled_eval(n_p, +z, l_k(p), base_p, rough_p, metal_p) * E_k(p)          (the moving light)
+           + (1 - metal_p) * base_p / pi * sum_j A_j L_kj Y_j(n_p)                       (order-2 SH ambient)
+
+``l_k(p)``/``E_k(p)``: a directional light (unit direction, RGB irradiance) or a near point light (position on the
+framing plane's world units, RGB intensity / distance^2). The ambient term is the diffuse part of the Principled
+BSDF under an order-2 SH radiance (Ramamoorthi & Hanrahan 2001 irradiance; its specular part is left out).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from matcap.refine.bsdf import principled_eval
+
+#: Real SH constants, basis order Y00, Y1-1, Y10, Y11, Y2-2, Y2-1, Y20, Y21, Y22 (lights.json order).
+SH_C0, SH_C1, SH_C2, SH_C3, SH_C4 = 0.282095, 0.488603, 1.092548, 0.315392, 0.546274
+#: Convolution of radiance with the clamped cosine, per band (R&H 2001): A0 = pi, A1 = 2pi/3, A2 = pi/4.
+SH_A = (math.pi,) + (2.0 * math.pi / 3.0,) * 3 + (math.pi / 4.0,) * 5
+
+
+def sh_basis(n: torch.Tensor) -> torch.Tensor:
+    """(..., 3) unit vectors -> (..., 9) real SH basis values."""
+    x, y, z = n.unbind(-1)
+    return torch.stack(
+        [torch.full_like(x, SH_C0), SH_C1 * y, SH_C1 * z, SH_C1 * x, SH_C2 * x * y, SH_C2 * y * z,
+         SH_C3 * (3.0 * z * z - 1.0), SH_C2 * x * z, SH_C4 * (x * x - y * y)], dim=-1)
+
+
+def sh_irradiance(n: torch.Tensor, sh: torch.Tensor) -> torch.Tensor:
+    """Irradiance from an SH radiance: n (N, 3), sh (K, 9, 3) -> (K, N, 3) (K may be 1)."""
+    # elementwise on purpose (no BLAS): matrix products may round differently from run to run (MKL takes other
+    # code paths for differently aligned buffers), and the fit must be bit-for-bit repeatable for a seed
+    basis = sh_basis(n)
+    out = None
+    for j in range(9):
+        term = basis[None, :, j, None] * (SH_A[j] * sh[:, j])[:, None, :]
+        out = term if out is None else out + term
+    return out
+
+
+def plane_positions(rows: torch.Tensor, cols: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """World positions (N, 3) of pixel centres on :mod:`renderers.plane`'s framing plane (z = 0, x in [-1, 1])."""
+    x = -1.0 + (cols.to(torch.float32) + 0.5) * 2.0 / width
+    y = height / width - (rows.to(torch.float32) + 0.5) * 2.0 / width
+    return torch.stack([x, y, torch.zeros_like(x)], dim=-1)
+
+
+@dataclass
+class LightParams:
+    """Per-image light parameters (free tensors, optimised). K images.
+
+    kind "directional": ``vec`` (K, 3) direction (normalised on use); "point": ``vec`` (K, 3) position.
+    ``log_intensity`` (K, 3): log RGB irradiance (directional) or radiant intensity (point); ``sh`` (K, 9, 3), or
+    (1, 9, 3) for one ambient shared by every photo.
+    """
+
+    kind: str
+    vec: torch.Tensor
+    log_intensity: torch.Tensor
+    sh: torch.Tensor
+
+    def tensors(self) -> list[torch.Tensor]:
+        return [self.vec, self.log_intensity, self.sh]
+
+    def directions(self) -> torch.Tensor:
+        return self.vec / self.vec.norm(dim=-1, keepdim=True).clamp(min=1e-8)
+
+    def incident(self, pos: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(wo (K, N|1, 3), irradiance (K, N|1, 3)) at plane positions ``pos`` (N, 3) (point lights need them)."""
+        inten = self.log_intensity.exp()
+        if self.kind == "directional":
+            return self.directions()[:, None, :], inten[:, None, :]
+        d = self.vec[:, None, :] - pos[None, :, :]
+        r2 = (d * d).sum(-1, keepdim=True).clamp(min=1e-6)
+        return d / r2.sqrt(), inten[:, None, :] / r2
+
+
+@dataclass
+class PixelParams:
+    """Per-pixel parameters (free tensors) of N pixels: normal as a gradient (n = normalise(a, b, 1), so it always
+    faces the camera), base colour / roughness / metallic as logits."""
+
+    grad: torch.Tensor  # (N, 2)
+    base_logit: torch.Tensor  # (N, 3)
+    rough_logit: torch.Tensor  # (N,)
+    metal_logit: torch.Tensor  # (N,)
+
+    def tensors(self) -> list[torch.Tensor]:
+        return [self.grad, self.base_logit, self.rough_logit, self.metal_logit]
+
+    def normal(self) -> torch.Tensor:
+        n = torch.cat([self.grad, torch.ones_like(self.grad[:, :1])], dim=-1)
+        return n / n.norm(dim=-1, keepdim=True)
+
+    def base(self) -> torch.Tensor:
+        return torch.sigmoid(self.base_logit)
+
+    def rough(self) -> torch.Tensor:
+        return torch.sigmoid(self.rough_logit)
+
+    def metal(self) -> torch.Tensor:
+        return torch.sigmoid(self.metal_logit)
+
+    @staticmethod
+    def from_maps(normal, base, rough, metal, min_nz: float = 0.08) -> "PixelParams":
+        """From map values (N, 3), (N, 3), (N,), (N,) (torch); values are clipped away from 0 / 1."""
+        nz = normal[:, 2:3].clamp(min=min_nz)
+        grad = normal[:, :2] / nz
+        lim = 1.0 / min_nz
+        grad = grad.clamp(-lim, lim)
+        return PixelParams(grad.clone(), _logit(base.clamp(0.01, 0.99)), _logit(rough.clamp(0.03, 0.97)),
+                           _logit(metal.clamp(0.02, 0.98)))
+
+    def take(self, idx: torch.Tensor) -> "PixelParams":
+        return PixelParams(*(t[idx].detach().clone() for t in self.tensors()))
+
+
+def _logit(x: torch.Tensor) -> torch.Tensor:
+    return torch.log(x) - torch.log1p(-x)
+
+
+def shade(normal, base, rough, metal, wo, irradiance, sh) -> torch.Tensor:
+    """Predicted radiance (K, N, 3) of N pixels in K images.
+
+    normal (N, 3) unit; base (N, 3); rough, metal (N,); wo / irradiance (K, N|1, 3); sh (K, 9, 3).
+    """
+    view = torch.zeros_like(normal)
+    view[:, 2] = 1.0
+    f = principled_eval(normal[None], view[None], wo.expand(-1, normal.shape[0], -1), base[None], rough[None],
+                        metal[None])
+    direct = f * irradiance
+    ambient = sh_irradiance(normal, sh) * ((1.0 - metal)[:, None] * base / math.pi)[None]
+    return direct + ambient
+
+
+def _dots(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(K, 3) x (N, 3) -> (K, N) dot products, elementwise (repeatable, unlike BLAS; see :func:`sh_irradiance`)."""
+    return a[:, None, 0] * b[None, :, 0] + a[:, None, 1] * b[None, :, 1] + a[:, None, 2] * b[None, :, 2]
+
+
+def shade_directional(normal, base, rough, metal, directions, irradiance, sh, specular: float = 0.5) -> torch.Tensor:
+    """:func:`shade` for directional lights seen along +z, with everything that depends only on the light
+    (half vector, Fresnel of the dielectric, the light's terms of the bump shadowing) computed once per photo:
+    the same numbers as ``principled_eval`` (tests/test_refine_model.py) at about a third of the work.
+
+    normal (N, 3); base (N, 3); rough, metal (N,); directions (K, 3) unit; irradiance (K, 3); sh (K|1, 9, 3).
+    """
+    from matcap.refine import bsdf as B
+
+    eta = 2.0 / (1.0 - math.sqrt(0.08 * specular)) - 1.0
+    l = directions
+    h = l + torch.tensor([0.0, 0.0, 1.0], dtype=l.dtype, device=l.device)
+    h = h / h.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    cos_d = (h * l).sum(-1).clamp(0.0, 1.0)  # (K,)
+    w_d = B._schlick_weight(cos_d)
+    f_die = B._fresnel_dielectric(cos_d, eta)
+    lz = l[:, 2].clamp(min=1e-6)
+    tan2_l = (1.0 - lz * lz) / (lz * lz)  # (K,)
+    # per pixel
+    ci = normal[:, 2].clamp(min=1e-6)
+    fi = B._schlick_weight(ci)
+    alpha = (rough * rough).clamp(min=1e-3)
+    a2 = alpha * alpha
+    tan2_i = (1.0 - ci * ci) / (ci * ci)
+    g_i = 2.0 / (1.0 + (1.0 + a2 * tan2_i).sqrt())
+    bump_a2 = (0.125 * tan2_i).clamp(0.0, 1.0)
+    # per photo and pixel (K, N)
+    co_raw = _dots(l, normal)
+    ch_raw = _dots(h, normal)
+    co = co_raw.clamp(min=1e-6)
+    ch = ch_raw.clamp(min=1e-6)
+    fo = B._schlick_weight(co)
+    rr = 2.0 * rough[None] * (cos_d * cos_d)[:, None]
+    diff = (1.0 - 0.5 * fi)[None] * (1.0 - 0.5 * fo) + rr * (fo + fi[None] + fo * fi[None] * (rr - 1.0))
+    diff = diff * co * ((1.0 - metal) / math.pi)[None]
+    denom = ch * ch * (a2[None] - 1.0) + 1.0
+    d = a2[None] / (math.pi * denom * denom)
+    tan2_o = (1.0 - co * co) / (co * co)
+    g_o = 2.0 / (1.0 + (1.0 + a2[None] * tan2_o).sqrt())
+    spec = d * (g_i / (4.0 * ci))[None] * g_o
+    bump = 2.0 / (1.0 + (1.0 + bump_a2[None] * tan2_l[:, None]).sqrt())
+    valid = (co_raw > 1e-6) & (ch_raw > 0) & (normal[:, 2] > 1e-6)[None] & (l[:, 2] > 0)[:, None]
+    zero = torch.zeros((), dtype=co.dtype, device=co.device)
+    diff = torch.where(valid, diff * bump, zero)
+    spec = torch.where(valid, spec * bump, zero)
+    # colour: diffuse * base + spec * F, F = (1 - m) F_dielectric + m Schlick(base)
+    fres = ((1.0 - metal)[None] * f_die[:, None])[..., None] + metal[None, :, None] * (
+        base[None] + (1.0 - base)[None] * w_d[:, None, None])
+    direct = (diff[..., None] * base[None] + spec[..., None] * fres) * irradiance[:, None, :]
+    ambient = sh_irradiance(normal, sh) * ((1.0 - metal)[:, None] * base / math.pi)[None]
+    return direct + ambient

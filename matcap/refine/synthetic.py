@@ -1,0 +1,95 @@
+"""A known capture for the refinement's tests and benchmarks: a glossy sphere rendered by our own Mitsuba
+relighting path (``renderers.relight.render``) under known lights, and "network-like" perturbed start maps.
+
+Only :func:`render_capture` uses Mitsuba (through ``renderers``); the rest is numpy.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from matcap.evaluation.toy import cone_lights, sphere_normals
+from scenes.materialmaps import MaterialMaps
+
+
+def sphere_maps(size: int = 64) -> MaterialMaps:
+    """A sphere with a bumpy band (so the normals are not all analytic), two materials side by side: left half
+    glossy dielectric (roughness 0.3), right half rough (0.7); base colour varies smoothly; metallic 0."""
+    normal, mask = sphere_normals(size, radius_frac=0.46, max_angle_deg=80.0)
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
+    bump = 0.15 * np.sin(2 * np.pi * 3 * xx) * np.exp(-((yy - 0.5) / 0.15) ** 2)
+    n = normal.copy()
+    n[..., 0] += bump
+    n /= np.linalg.norm(n, axis=-1, keepdims=True).clip(1e-6)
+    n[~mask] = 0
+    base = np.stack([0.55 + 0.3 * xx, 0.45 + 0.2 * yy, 0.35 + 0.1 * (1 - xx)], -1).astype(np.float32)
+    rough = np.where(xx < 0.5, 0.3, 0.7).astype(np.float32)
+    metal = np.zeros((size, size), np.float32)
+    zero = lambda a: np.where(mask if a.ndim == 2 else mask[..., None], a, 0).astype(np.float32)  # noqa: E731
+    return MaterialMaps(normal=n.astype(np.float32), mask=mask, base_color=zero(base), roughness=zero(rough),
+                        metallic=zero(metal))
+
+
+def known_lights(count: int = 12, seed: int = 3, max_angle_deg: float = 55.0, kind: str = "directional",
+                 distance: float = 3.0):
+    """``count`` DirectionalLights (or PointLights at ``distance``) in a cone around the view, RGB-tinted."""
+    from scenes.lights import DirectionalLight, PointLight
+
+    dirs = cone_lights(count, max_angle_deg, seed=seed)
+    rng = np.random.default_rng(seed)
+    out = []
+    for d in dirs:
+        tint = rng.uniform(0.8, 1.2, 3) * 2.5
+        if kind == "point":
+            out.append(PointLight(position=tuple(float(v) for v in d * distance),
+                                  intensity=tuple(float(v) for v in tint * distance ** 2)))
+        else:
+            out.append(DirectionalLight(direction=tuple(float(v) for v in d), irradiance=tuple(float(v) for v in tint)))
+    return out
+
+
+def render_capture(maps: MaterialMaps, lights, ambient: float = 0.05, spp: int = 32, seed: int = 0):
+    """K (H, W, 3) float32 linear photos of ``maps``: each light plus a uniform environment of radiance ``ambient``."""
+    from renderers.relight import render
+    from scenes.lights import EnvironmentLight
+
+    env = {"uniform": np.full((16, 32, 3), ambient, np.float32)}
+    # render the whole frame with the normals continued past the mask (the renderer's bilinear texture lookup
+    # would otherwise blend rim pixels with the flat background), then black out the background
+    full = extend_maps(maps)
+    photos = []
+    for i, light in enumerate(lights):
+        extra = [EnvironmentLight(source="uniform")] if ambient > 0 else []
+        img = render(full, [light] + extra, env if extra else None, spp=spp, seed=seed + i)
+        photos.append(np.where(maps.mask[..., None], img, 0.0).astype(np.float32))
+    return photos
+
+
+def extend_maps(maps: MaterialMaps) -> MaterialMaps:
+    """``maps`` with every map continued past the mask by the nearest masked pixel and an all-true mask."""
+    from scipy import ndimage
+
+    idx = ndimage.distance_transform_edt(~maps.mask, return_distances=False, return_indices=True)
+    near = lambda a: None if a is None else a[idx[0], idx[1]]  # noqa: E731
+    return MaterialMaps(normal=near(maps.normal), mask=np.ones_like(maps.mask), base_color=near(maps.base_color),
+                        roughness=near(maps.roughness), metallic=near(maps.metallic))
+
+
+def perturb(maps: MaterialMaps, seed: int = 0, normal_deg: float = 8.0, rough_shift: float = 0.2,
+            base_gain: float = 0.8) -> MaterialMaps:
+    """Network-like start maps: normals tilted by a smooth field plus per-pixel noise (about ``normal_deg``),
+    roughness shifted toward 0.5 by ``rough_shift``, base colour scaled by ``base_gain``; metallic 0.1."""
+    rng = np.random.default_rng(seed)
+    h, w = maps.shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32) / max(h, w)
+    t = np.radians(normal_deg)
+    field = np.stack([np.sin(2 * np.pi * yy + 1.0), np.cos(2 * np.pi * xx), np.zeros_like(xx)], -1) * 0.7 * t
+    field += rng.normal(0, 0.5 * t, (h, w, 3)) * np.float32([1, 1, 0])
+    n = maps.normal + field
+    n /= np.linalg.norm(n, axis=-1, keepdims=True).clip(1e-6)
+    n[..., 2] = np.maximum(n[..., 2], 0.05)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True).clip(1e-6)
+    m = maps.mask
+    n[~m] = 0
+    r = np.where(m, maps.roughness + rough_shift * np.sign(0.5 - maps.roughness), 0)
+    return MaterialMaps(normal=n.astype(np.float32), mask=m, base_color=(maps.base_color * base_gain).astype(np.float32),
+                        roughness=r.astype(np.float32), metallic=np.where(m, 0.1, 0).astype(np.float32))

@@ -1,0 +1,67 @@
+"""`matcap capture --refine / --no-refine` and `matcap refine RESULT PHOTOS`: outputs, bit-for-bit network maps
+without refinement, no silent replacement, one-line errors."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from matcap import imageio
+from tests.test_capture import assert_one_line_error, run_cli, sphere_capture, tiny_weights  # noqa: F401
+
+
+def test_no_refine_gives_the_network_maps_bit_for_bit(tiny_weights, tmp_path):  # noqa: F811
+    from matcap.capture import estimate, load_capture
+
+    folder = sphere_capture(tmp_path / "photos")
+    out = tmp_path / "plain"
+    r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet", "--no-refine")
+    assert r.returncode == 0, r.stderr
+    cap = load_capture(folder)
+    maps = estimate(cap.images, cap.mask, weights=[tiny_weights], seed=0)
+    assert np.array_equal(imageio.read_exr(out / "normal.exr"), np.where(maps.mask[..., None], maps.normal, 0))
+    assert not (out / "lights.json").exists() and not (out / "fit.json").exists()
+    assert "refine" not in json.loads((out / "capture.json").read_text())
+
+
+def test_capture_refine_writes_lights_fit_and_diagnostics_and_refine_reruns(tiny_weights, tmp_path):  # noqa: F811
+    folder = sphere_capture(tmp_path / "photos", n=5)
+    out = tmp_path / "refined"
+    r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet", "--refine")
+    assert r.returncode == 0, r.stderr
+    for name in ("lights.json", "fit.json", "residual.png", "light_variation.png", "normal.exr", "capture.json"):
+        assert (out / name).exists(), name
+    lights = json.loads((out / "lights.json").read_text())
+    assert lights["version"] == 1 and len(lights["images"]) == 5
+    first = lights["images"][0]
+    assert first["file"] == "img_00.png" and first["kind"] == "directional" and len(first["sh"]) == 9
+    fit = json.loads((out / "fit.json").read_text())
+    assert len(fit["psnr_db"]) == 5 and fit["iterations"]["fine"] > 0 and fit["settings"]["seed"] == 0
+    info = json.loads((out / "capture.json").read_text())
+    assert {"lights.json", "fit.json"} <= set(info["files"]) and info["refine"]["psnr_db_mean"] > 10  # tiny random-weight networks: a poor start
+    # matcap refine: refuses to replace the result without --overwrite, leaves it intact, then replaces it
+    before = (out / "normal.exr").read_bytes()
+    r2 = run_cli("refine", str(out), str(folder), "--quiet")
+    assert_one_line_error(r2, "--overwrite")
+    assert (out / "normal.exr").read_bytes() == before
+    r3 = run_cli("refine", str(out), str(folder), "--quiet", "--overwrite", "--light", "point")
+    assert r3.returncode == 0, r3.stderr
+    assert json.loads((out / "lights.json").read_text())["images"][0]["kind"] == "point"
+    assert json.loads((out / "capture.json").read_text())["tool"] == "matcap refine"
+
+
+def test_refine_bad_input_is_one_line_exit_2(tiny_weights, tmp_path):  # noqa: F811
+    folder = sphere_capture(tmp_path / "photos")
+    r = run_cli("refine", str(tmp_path / "nothing"), str(folder), "--out", str(tmp_path / "o"), "--quiet")
+    assert_one_line_error(r, "not a result folder")
+    out = tmp_path / "res"
+    assert run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet").returncode == 0
+    dark = tmp_path / "dark"
+    dark.mkdir()
+    for i in range(4):
+        imageio.write_png(dark / f"img_{i:02d}.png", np.zeros((40, 56, 3), np.float32), bits=16)
+    (dark / "mask.png").write_bytes((folder / "mask.png").read_bytes())
+    r = run_cli("refine", str(out), str(dark), "--out", str(tmp_path / "o2"), "--quiet")
+    assert_one_line_error(r, "black")
+    r = run_cli("refine", str(out), str(folder), "--out", str(tmp_path / "o3"), "--linear", "--srgb")
+    assert_one_line_error(r, "contradict")
