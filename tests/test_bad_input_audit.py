@@ -73,7 +73,7 @@ def test_capture_bogus_device_is_one_line(tmp_path, capsys):
     (["--seed", "-1"], "--seed must be 0 or more"),
     (["--relight", "missing.exr"], "no such environment map"),
     (["--relight", "ENV", "--spp", "0"], "--spp must be between 1 and 65536, got 0"),
-    (["--export", "tex", "--preset", "bogus"], "unknown preset 'bogus'"),
+    (["--export", "tex", "--preset", "bogus"], "--preset: invalid choice: 'bogus'"),
 ])
 def test_capture_bad_options_fail_before_writing_a_result(tmp_path, capsys, extra, needle):
     extra = [str(tmp_path / "missing.exr") if e == "missing.exr" else e for e in extra]

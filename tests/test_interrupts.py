@@ -30,7 +30,10 @@ from conftest import sphere_photos
 pytestmark = pytest.mark.slow  # each case starts one or two `matcap` processes (torch import included)
 
 CHILD = r"""
-import sys, time
+import signal, sys, time
+# Ctrl-C as on a terminal: a test run started in the background (`cmd &`, some CI runners) hands its children
+# SIGINT ignored, and Python keeps an ignored SIGINT ignored
+signal.signal(signal.SIGINT, signal.default_int_handler)
 patch = sys.argv[1]
 argv = sys.argv[2:]
 
