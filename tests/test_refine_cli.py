@@ -54,6 +54,8 @@ def test_refine_bad_input_is_one_line_exit_2(tiny_weights, tmp_path):  # noqa: F
     folder = sphere_capture(tmp_path / "photos")
     r = run_cli("refine", str(tmp_path / "nothing"), str(folder), "--out", str(tmp_path / "o"), "--quiet")
     assert_one_line_error(r, "not a result folder")
+    r = run_cli("refine", str(tmp_path / "nothing"), str(folder), "--quiet")  # no --out: same, not "--overwrite"
+    assert_one_line_error(r, "not a result folder")
     out = tmp_path / "res"
     assert run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet").returncode == 0
     dark = tmp_path / "dark"

@@ -40,6 +40,8 @@ def run(args) -> int:
         raise MatcapError(f"--seed must be 0 or more, got {args.seed}")
     check_device(args.device)
     result = Path(args.result)
+    if not result.is_dir():
+        raise MatcapError(f"{result}: not a result folder (make one with matcap capture)")
     out = Path(args.out) if args.out else result
     if out.resolve() == result.resolve() and not args.overwrite:
         raise MatcapError(f"{result} would be replaced by the refined result; pass --overwrite (or --out DIR)")
