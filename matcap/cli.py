@@ -10,15 +10,12 @@ Set ``MATCAP_DEBUG=1`` to get the traceback instead.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import importlib
 import os
-import signal
 import sys
-import threading
 import warnings
 
-from matcap.errors import MatcapError
+from matcap.errors import MatcapError, sigterm_as_interrupt
 
 COMMANDS = [
     "capture",
@@ -74,24 +71,6 @@ def main(argv: list[str] | None = None) -> int:
         warnings.formatwarning = saved
 
 
-@contextlib.contextmanager
-def _term_as_interrupt():
-    """SIGTERM (``kill``, a scheduler, ``timeout``) unwinds a command like Ctrl-C: ``finally`` blocks run, so
-    temporary folders are removed and no partial output is left (exit 130). Main thread only."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, _frame):
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    previous = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
 def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -99,7 +78,7 @@ def _main(argv: list[str] | None) -> int:
         parser.print_help()
         return 2
     try:
-        with _term_as_interrupt():
+        with sigterm_as_interrupt():
             code = args.func(args)
     except KeyboardInterrupt:
         print("matcap: interrupted", file=sys.stderr)

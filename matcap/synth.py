@@ -11,17 +11,14 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 import socket
-import threading
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from matcap.errors import MatcapError
+from matcap.errors import MatcapError, sigterm_as_interrupt
 from scenes.lights import EnvironmentLight
 from scenes.synth_spec import (
     GENERATOR_VERSIONS,
@@ -351,24 +348,6 @@ class ShardLock:
             pass
 
 
-@contextmanager
-def _term_as_interrupt():
-    """While active, SIGTERM (a scheduler's or ``kill``'s stop) raises KeyboardInterrupt like Ctrl-C, so the run
-    unwinds the same way: no half-written scene, the manifest rebuilt, the shard lock released."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, _frame):
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    previous = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
 def _remove_stale_tmp(out: Path) -> list[str]:
     """Delete the ``.tmp-scene_*-PID`` folders of processes that no longer run (a run killed with ``kill -9``
     while writing a scene); those of running processes (other shards) are left alone. Returns the names."""
@@ -423,7 +402,7 @@ def run_synth(out, scenes: int, resolution: int = 256, seed: int = 0, shard: str
     assets_used = None if assets is None else {"meshes": len(catalog.meshes), "envmaps": len(catalog.envmaps),
                                                "textures": len(catalog.textures)}
     _check_params(out, _params(split, resolution, seed, scenes, spp, assets_used, data_version))
-    with _term_as_interrupt(), ShardLock(out, i, n):  # one process per shard
+    with sigterm_as_interrupt(), ShardLock(out, i, n):  # one process per shard
         _remove_stale_tmp(out)
         cache = AssetCache(assets)
         todo = [k for k in range(i, scenes, n) if not (out / f"scene_{k:06d}" / "spec.json").exists()]
