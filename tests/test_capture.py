@@ -4,47 +4,15 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from matcap import imageio
 from matcap.capture import _from_square, _plan, _to_square, estimate, load_capture
+from conftest import sphere_photos
 
 
-@pytest.fixture(scope="module")
-def tiny_weights(tmp_path_factory) -> Path:
-    from networks.checkpoint import save_weights
-    from networks.config import get_config
-    from networks.model import SDMUniPS
-
-    folder = tmp_path_factory.mktemp("weights")
-    for target in ("normal", "brdf"):
-        torch.manual_seed(0)
-        cfg = get_config("tiny", target)
-        save_weights(folder / f"{target}_tiny.safetensors", SDMUniPS(cfg), cfg, {"name": f"{target}_tiny"})
-    return folder
-
-
-def sphere_capture(folder: Path, h: int = 40, w: int = 56, n: int = 4, bits: int = 16, mask: bool = True) -> Path:
-    """A Lambertian sphere under n directional lights, written as PNGs (+ mask.png)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    yy, xx = np.mgrid[0:h, 0:w]
-    r = min(h, w) * 0.4
-    x, y = (xx - w / 2) / r, (h / 2 - yy) / r
-    inside = x**2 + y**2 < 1
-    normal = np.dstack([x, y, np.sqrt(np.clip(1 - x**2 - y**2, 0, 1))])
-    rng = np.random.default_rng(0)
-    for i in range(n):
-        L = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 1.0])
-        L /= np.linalg.norm(L)
-        img = np.where(inside[..., None], 0.7 * np.clip(normal @ L, 0, 1)[..., None], 0.05) * np.ones(3)
-        imageio.write_png(folder / f"img_{i:02d}.png", img, bits=bits)
-    if mask:
-        imageio.write_png(folder / "mask.png", inside.astype(np.float32), bits=8)
-    return folder
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
@@ -62,7 +30,7 @@ def assert_one_line_error(r: subprocess.CompletedProcess, needle: str) -> None:
 
 
 def test_load_capture_colour_handling_and_skips(tmp_path):
-    folder = sphere_capture(tmp_path / "a", bits=8)
+    folder = sphere_photos(tmp_path / "a", bits=8)
     imageio.write_png(folder / "normal_gt.png", np.zeros((40, 56, 3)), bits=8)
     cap = load_capture(folder)
     assert len(cap.images) == 4 and cap.mask.shape == (40, 56)
@@ -70,7 +38,7 @@ def test_load_capture_colour_handling_and_skips(tmp_path):
     raw = imageio.read_image(folder / "img_00.png").pixels
     assert np.allclose(cap.images[0], imageio.srgb_to_linear(raw / 255.0), atol=1e-6)
     assert load_capture(folder, linear=True).colour == "8-bit taken as linear (--linear)"
-    cap16 = load_capture(sphere_capture(tmp_path / "b", bits=16))
+    cap16 = load_capture(sphere_photos(tmp_path / "b", bits=16))
     assert cap16.colour == "16-bit taken as linear"
     raw16 = imageio.read_image(tmp_path / "b" / "img_01.png").pixels
     assert np.array_equal(cap16.images[1], raw16.astype(np.float32) / 65535)
@@ -83,24 +51,24 @@ def test_bad_input_is_one_line_exit_2(tmp_path, case):
     if case == "empty":
         needle = "no images found"
     elif case == "one":
-        sphere_capture(folder, n=1, mask=False)
+        sphere_photos(folder, n=1, mask=False)
         needle = "only one image"
     elif case == "mixed":
-        sphere_capture(folder, n=2, mask=False)
+        sphere_photos(folder, n=2, mask=False)
         imageio.write_png(folder / "img_09.png", np.zeros((41, 56, 3)))
         needle = "all images must share one size"
     elif case == "unreadable":
-        sphere_capture(folder, n=2, mask=False)
+        sphere_photos(folder, n=2, mask=False)
         (folder / "img_05.png").write_bytes(b"not a png at all")
         needle = "cannot read image"
     elif case == "nan":
-        sphere_capture(folder, n=2, mask=False)
+        sphere_photos(folder, n=2, mask=False)
         bad = np.ones((40, 56, 3), np.float32)
         bad[3, 4] = np.nan
         imageio.write_exr(folder / "img_07.exr", bad)
         needle = "NaN or Inf"
     else:
-        sphere_capture(folder, n=3, mask=False)
+        sphere_photos(folder, n=3, mask=False)
         imageio.write_png(folder / "mask.png", np.ones((20, 20)), bits=8)
         needle = "mask is 20x20 but the images are 56x40"
     r = run_cli("capture", str(folder), "--out", str(tmp_path / "out"), "--weights", str(tmp_path))
@@ -130,7 +98,7 @@ def test_pad_and_crop_back_is_exact_where_not_resized(shape, native):
 
 
 def test_capture_writes_every_output(tiny_weights, tmp_path):
-    folder = sphere_capture(tmp_path / "photos")
+    folder = sphere_photos(tmp_path / "photos")
     out = tmp_path / "result"
     r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet")
     assert r.returncode == 0, r.stderr
@@ -179,7 +147,7 @@ def test_no_default_model_message(monkeypatch, tmp_path):
 def test_capture_relight_and_export_in_one_go(tiny_weights, tmp_path):
     from matcap.relight import default_envmap_path
 
-    folder = sphere_capture(tmp_path / "photos")
+    folder = sphere_photos(tmp_path / "photos")
     out, tex = tmp_path / "result", tmp_path / "textures"
     r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet",
                 "--relight", str(default_envmap_path()), "--point", "0,0,3", "--spp", "4", "--export", str(tex))
@@ -209,7 +177,7 @@ def test_views_average_mirrored_predictions_and_are_recorded(tiny_weights, tmp_p
     assert np.degrees(np.arccos(np.clip((one.normal * two.normal).sum(-1)[inside], -1, 1))).mean() > 0.01
     assert 0.0 <= two.roughness.min() and two.roughness.max() <= 1.0
     assert two.meta["views"] == 2
-    folder = sphere_capture(tmp_path / "photos")
+    folder = sphere_photos(tmp_path / "photos")
     r = run_cli("capture", str(folder), "--out", str(tmp_path / "out"), "--weights", str(tiny_weights), "--quiet",
                 "--views", "4")
     assert r.returncode == 0, r.stderr
@@ -219,7 +187,7 @@ def test_views_average_mirrored_predictions_and_are_recorded(tiny_weights, tmp_p
 
 
 def test_constant_maps_replace_estimates_on_the_mask(tiny_weights, tmp_path):
-    folder = sphere_capture(tmp_path / "photos")
+    folder = sphere_photos(tmp_path / "photos")
     out = tmp_path / "result"
     r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet",
                 "--constant", "metallic=0", "--constant", "roughness=0.25")
@@ -238,7 +206,7 @@ def test_constant_maps_replace_estimates_on_the_mask(tiny_weights, tmp_path):
 
 @pytest.mark.parametrize("item", ["metallic=2", "albedo=0.5", "roughness", "metallic=abc"])
 def test_bad_constant_is_one_line_exit_2_before_any_work(tiny_weights, tmp_path, item):
-    folder = sphere_capture(tmp_path / "photos")
+    folder = sphere_photos(tmp_path / "photos")
     r = run_cli("capture", str(folder), "--out", str(tmp_path / "out"), "--weights", str(tiny_weights),
                 "--constant", item)
     assert_one_line_error(r, f"--constant {item!r}")
@@ -280,7 +248,7 @@ def test_usage_mistakes_are_one_line_exit_2(args, needle, capsys):
 
 
 def test_max_side_shrinks_photos_and_mask_first(tiny_weights, tmp_path):
-    folder = sphere_capture(tmp_path / "photos")  # 56 x 40
+    folder = sphere_photos(tmp_path / "photos")  # 56 x 40
     out = tmp_path / "result"
     r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet",
                 "--max-side", "28")

@@ -9,7 +9,8 @@ import sys
 import numpy as np
 
 from matcap import imageio
-from tests.test_capture import assert_one_line_error, run_cli, sphere_capture, tiny_weights  # noqa: F401
+from conftest import sphere_photos
+from tests.test_capture import assert_one_line_error, run_cli
 
 
 # The network maps computed in a fresh interpreter, as the CLI runs: inside pytest another test module may have
@@ -23,8 +24,8 @@ _NETWORK_MAPS = (
 )
 
 
-def test_no_refine_gives_the_network_maps_bit_for_bit(tiny_weights, tmp_path):  # noqa: F811
-    folder = sphere_capture(tmp_path / "photos")
+def test_no_refine_gives_the_network_maps_bit_for_bit(tiny_weights, tmp_path):
+    folder = sphere_photos(tmp_path / "photos")
     out = tmp_path / "plain"
     r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet", "--no-refine")
     assert r.returncode == 0, r.stderr
@@ -36,8 +37,8 @@ def test_no_refine_gives_the_network_maps_bit_for_bit(tiny_weights, tmp_path):  
     assert "refine" not in json.loads((out / "capture.json").read_text())
 
 
-def test_capture_refine_writes_lights_fit_and_diagnostics_and_refine_reruns(tiny_weights, tmp_path):  # noqa: F811
-    folder = sphere_capture(tmp_path / "photos", n=5)
+def test_capture_refine_writes_lights_fit_and_diagnostics_and_refine_reruns(tiny_weights, tmp_path):
+    folder = sphere_photos(tmp_path / "photos", n=5)
     out = tmp_path / "refined"
     r = run_cli("capture", str(folder), "--out", str(out), "--weights", str(tiny_weights), "--quiet", "--refine")
     assert r.returncode == 0, r.stderr
@@ -62,8 +63,8 @@ def test_capture_refine_writes_lights_fit_and_diagnostics_and_refine_reruns(tiny
     assert json.loads((out / "capture.json").read_text())["tool"] == "matcap refine"
 
 
-def test_refine_bad_input_is_one_line_exit_2(tiny_weights, tmp_path):  # noqa: F811
-    folder = sphere_capture(tmp_path / "photos")
+def test_refine_bad_input_is_one_line_exit_2(tiny_weights, tmp_path):
+    folder = sphere_photos(tmp_path / "photos")
     r = run_cli("refine", str(tmp_path / "nothing"), str(folder), "--out", str(tmp_path / "o"), "--quiet")
     assert_one_line_error(r, "not a result folder")
     r = run_cli("refine", str(tmp_path / "nothing"), str(folder), "--quiet")  # no --out: same, not "--overwrite"
