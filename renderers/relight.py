@@ -20,7 +20,7 @@ import numpy as np
 
 from renderers.emitters import emitter_dict, sanitize_envmap
 from renderers.plane import ortho_sensor, plane_shape, plane_to_uv
-from scenes.lights import EnvironmentLight, Light
+from scenes.lights import EnvironmentLight, Light, envmap_directions
 from scenes.materialmaps import MaterialMaps
 
 DEFAULT_SPP = 16  # 1024x1024 under an env map in ~3 s on 2 cores; see docs/relight.md for the noise
@@ -174,18 +174,6 @@ def render(
     return np.ascontiguousarray(img, dtype=np.float32)
 
 
-def _envmap_directions(height: int, width: int, rotation_deg: float) -> np.ndarray:
-    """World directions (H, W, 3) of the texel centres of an equirectangular map under Mitsuba's ``envmap``
-    convention (u = atan2(x, -z) / 2pi, v = acos(y) / pi), turned by ``rotation_deg`` about +y."""
-    u = (np.arange(width, dtype=np.float64) + 0.5) / width
-    v = (np.arange(height, dtype=np.float64) + 0.5) / height
-    phi, theta = np.meshgrid(2.0 * np.pi * u, np.pi * v)
-    local = np.stack([np.sin(phi) * np.sin(theta), np.cos(theta), -np.cos(phi) * np.sin(theta)], axis=-1)
-    a = np.radians(rotation_deg)
-    rot = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
-    return local @ rot.T
-
-
 def cull_back_hemisphere(pixels: np.ndarray, rotation_deg: float = 0.0) -> np.ndarray:
     """Zero the texels that can only light the back of the plane (world z < 0), with a 2-texel margin.
 
@@ -194,7 +182,7 @@ def cull_back_hemisphere(pixels: np.ndarray, rotation_deg: float = 0.0) -> np.nd
     the sphere the surface cannot see.
     """
     h, w = pixels.shape[:2]
-    d = _envmap_directions(h, w, rotation_deg)
+    d = envmap_directions(h, w, rotation_deg)
     margin = np.sin(2.0 * np.pi / h)  # two texels (pi / H rad each) past the horizon: bilinear support
     keep = d[..., 2] > -margin
     return np.where(keep[..., None], pixels, 0.0).astype(np.float32)

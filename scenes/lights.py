@@ -131,3 +131,15 @@ def light_vector(light: Light, envmap_pixels: np.ndarray | None = None) -> np.nd
         rot = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
         return (rot @ vec).astype(np.float32)
     raise TypeError(f"not a light: {light!r}")
+
+
+def envmap_directions(height: int, width: int, rotation_deg: float = 0.0) -> np.ndarray:
+    """World directions (H, W, 3) of the texel centres of an equirectangular map under Mitsuba's ``envmap``
+    convention (u = atan2(x, -z) / 2pi, v = acos(y) / pi), turned by ``rotation_deg`` about +y."""
+    u = (np.arange(width, dtype=np.float64) + 0.5) / width
+    v = (np.arange(height, dtype=np.float64) + 0.5) / height
+    phi, theta = np.meshgrid(2.0 * np.pi * u, np.pi * v)
+    local = np.stack([np.sin(phi) * np.sin(theta), np.cos(theta), -np.cos(phi) * np.sin(theta)], axis=-1)
+    a = np.radians(rotation_deg)
+    rot = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    return local @ rot.T

@@ -19,7 +19,7 @@ Unknown keys are ignored; missing, non-finite or wrong-length required values ar
 For relighting (``matcap relight R --lights R/lights.json --image k``), :func:`entry_to_lights` turns one entry
 into ``scenes.lights`` objects: the directional / point light as it is, plus the SH ambient as an
 equirectangular :class:`EnvironmentLight` whose texels hold the SH radiance in their directions (Mitsuba's
-``envmap`` convention, as ``renderers.relight._envmap_directions``), negative radiance clamped to 0.
+``envmap`` convention, as ``scenes.lights.envmap_directions``), negative radiance clamped to 0.
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from matcap.errors import MatcapError
-from scenes.lights import DirectionalLight, EnvironmentLight, Light, PointLight
+from scenes.lights import DirectionalLight, EnvironmentLight, Light, PointLight, envmap_directions
 
 VERSION = 1
 FRAME = "camera: x right, y up, z toward the camera (as normal.exr); orthographic view along -z"
@@ -66,21 +66,6 @@ def sh_irradiance(sh: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Irradiance (..., 3) on surfaces with ``normals`` (..., 3) under the SH radiance ``sh`` (9, 3) (R&H 2001;
     exact for a radiance that is itself order-2 SH, integrated over the normal's whole hemisphere)."""
     return sh_basis(normals) @ (SH_A[:, None] * np.asarray(sh, dtype=np.float64))
-
-
-def envmap_directions(height: int, width: int, rotation_deg: float = 0.0) -> np.ndarray:
-    """World directions (H, W, 3) of the texel centres of an equirectangular map in Mitsuba's ``envmap``
-    convention (u = atan2(x, -z) / 2pi, v = acos(y) / pi), turned by ``rotation_deg`` about +y.
-
-    The same math as ``renderers.relight._envmap_directions`` (matcap.refine imports no renderers; a test checks
-    that the two agree)."""
-    u = (np.arange(width, dtype=np.float64) + 0.5) / width
-    v = (np.arange(height, dtype=np.float64) + 0.5) / height
-    phi, theta = np.meshgrid(2.0 * np.pi * u, np.pi * v)
-    local = np.stack([np.sin(phi) * np.sin(theta), np.cos(theta), -np.cos(phi) * np.sin(theta)], axis=-1)
-    a = np.radians(rotation_deg)
-    rot = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
-    return local @ rot.T
 
 
 def sh_to_envmap(sh: np.ndarray, height: int = ENV_SIZE[1], width: int = ENV_SIZE[0]) -> np.ndarray:
