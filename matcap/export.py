@@ -34,14 +34,7 @@ import numpy as np
 from matcap import formats, imageio
 from matcap.errors import MatcapError
 from scenes.atomic import atomic_files, recover_files
-from matcap.formats import (  # noqa: F401  (the normal conventions, kept importable from here)
-    NORMAL_CONVENTIONS,
-    camera_to_tangent,
-    decode_normal,
-    encode_normal,
-    tangent_frame,
-    tangent_to_camera,
-)
+from matcap.normals import NORMAL_CONVENTIONS, camera_to_tangent, tangent_frame
 from scenes.materialmaps import MaterialMaps
 
 FORMAT_VERSION = 1

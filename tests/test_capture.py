@@ -159,7 +159,7 @@ def test_capture_relight_and_export_in_one_go(tiny_weights, tmp_path):
     exported = imageio.read_image(tex / "result_normal.png").pixels / 65535.0
     mask = imageio.read_image(out / "mask.png").pixels[..., 0] > 0
     normal = imageio.read_exr(out / "normal.exr")
-    from matcap.export import camera_to_tangent
+    from matcap.normals import camera_to_tangent
 
     expected = (camera_to_tangent(normal, mask) + 1) / 2  # the export of exactly the maps capture wrote
     assert np.abs(exported[mask] - expected[mask]).max() < 1e-4

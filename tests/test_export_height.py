@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from matcap import MaterialMaps
-from matcap.export import camera_to_tangent, export, read_texture_set
+from matcap.export import export, read_texture_set
+from matcap.normals import camera_to_tangent
 from matcap.height import integrate_normals
 from matcap.imageio import read_exr
 
