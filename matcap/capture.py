@@ -626,13 +626,19 @@ def capture(
     # --max-side and --max-images act while reading: photos are shrunk one by one and unused ones never decoded
     max_images = estimate_kwargs.pop("max_images", None)
     seed = estimate_kwargs.get("seed", 0)
-    colour_decision = None
+    colour_decision, cap, maps = None, None, None
     if refine and linear is None:  # neither --linear nor --srgb: let the fit decide for 8-bit photos
-        linear, colour_decision = decide_colour(folder, mask, max_side, refine_settings,
-                                                dict(estimate_kwargs, max_images=max_images))
-    cap = load_capture(folder, mask=mask, linear=bool(linear), max_side=max_side, max_images=max_images, seed=seed)
+        linear, colour_decision, cap, maps = decide_colour(folder, mask, max_side, refine_settings,
+                                                           dict(estimate_kwargs, max_images=max_images))
+    if cap is None:
+        cap = load_capture(folder, mask=mask, linear=bool(linear), max_side=max_side, max_images=max_images,
+                           seed=seed)
     original_wh = list(cap.photo_size_wh)
-    maps = estimate(cap.images, cap.mask, **estimate_kwargs).with_constants(constants)
+    if maps is None:
+        maps = estimate(cap.images, cap.mask, **estimate_kwargs)
+    else:  # the decision's sRGB prediction: the same call, made once
+        maps = dataclasses.replace(maps, meta=dict(maps.meta))
+    maps = maps.with_constants(constants)
     used = [cap.files[i] for i in maps.meta["images_used"]]
     refine_writer = None
     if refine:
@@ -671,9 +677,11 @@ def capture(
 
 
 def decide_colour(folder, mask, max_side, settings, estimate_kwargs, pixels: int = 6000):
-    """(linear?, record) for 8-bit photos given neither --linear nor --srgb: run the networks on the sRGB-decoded
-    photos, fit both decodings (a quick fit on ``pixels`` random object pixels) and keep the one whose re-render
-    is closer to the photos *as stored* (RMS in 8-bit units / 255). 16-bit and float photos: (False, None)."""
+    """(linear?, record, capture, maps) for 8-bit photos given neither --linear nor --srgb: run the networks on the
+    sRGB-decoded photos, fit both decodings (a quick fit on ``pixels`` random object pixels) and keep the one whose
+    re-render is closer to the photos *as stored* (RMS in 8-bit units / 255). ``capture`` is the photos read the
+    chosen way; ``maps`` the networks' maps when they were made from those photos (sRGB chosen), else None, so the
+    caller reads and predicts nothing twice. 16-bit and float photos: (False, None, capture, None)."""
     from matcap.refine import RefineSettings, refine
 
     kwargs = dict(estimate_kwargs, progress=False)
@@ -681,7 +689,7 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, pixels: int
     caps = {lin: load_capture(folder, mask=mask, linear=lin, max_side=max_side, max_images=max_images,
                               seed=kwargs.get("seed", 0)) for lin in (False, True)}
     if "8-bit" not in caps[False].colour:
-        return False, None
+        return False, None, caps[False], None
     maps = estimate(caps[False].images, caps[False].mask, **kwargs)
     rng = np.random.default_rng(0)
     ys, xs = np.nonzero(maps.mask)
@@ -702,10 +710,11 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, pixels: int
             pred, photo = imageio.linear_to_srgb(pred), imageio.linear_to_srgb(np.clip(photo, 0.0, 1.0))
         rmse[lin] = float(np.sqrt(((pred - photo) ** 2).mean()))
     linear = rmse[True] < rmse[False]
-    return linear, {"chosen": "linear" if linear else "srgb", "rms_8bit_linear": round(rmse[True], 5),
-                    "rms_8bit_srgb": round(rmse[False], 5),
-                    "how": "quick refinement of both decodings on a pixel subsample; RMS of the re-render against "
-                           "the stored 8-bit values / 255"}
+    record = {"chosen": "linear" if linear else "srgb", "rms_8bit_linear": round(rmse[True], 5),
+              "rms_8bit_srgb": round(rmse[False], 5),
+              "how": "quick refinement of both decodings on a pixel subsample; RMS of the re-render against the "
+                     "stored 8-bit values / 255"}
+    return linear, record, caps[linear], None if linear else maps
 
 
 def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,
