@@ -35,6 +35,7 @@ from typing import Any
 
 TARGETS = ("normal", "brdf")
 PRESETS = ("paper", "small", "tiny")
+BF16_FP32_STAGES = ("glc_upsample", "glc_aggregation.pma")
 
 
 @dataclass
@@ -127,7 +128,14 @@ class SDMUniPSConfig:
     """Pixels per chunk in the per-pixel decoder stages (bounds memory; no effect on results)."""
 
     preset: str = ""
-    """Name of the preset this config was made from (informational)."""
+    """Name of the preset this config was made from (informational, except for ``bf16_fp32_stages`` = None)."""
+
+    bf16_fp32_stages: tuple[str, ...] | None = None
+    """Decoder parts that stay float32 at inference under bf16 autocast: any of "glc_upsample" and
+    "glc_aggregation.pma". None: by preset (:meth:`resolved_bf16_fp32_stages`). Measured normals, bf16 vs fp32:
+    ``paper`` (512², K=16, "bench" weights) all-bf16 0.66° mean, glc_upsample + PMA in fp32 0.34° (+25% decoder
+    time); ``small`` (bundled weights, examples/bunny K=16) glc_upsample + PMA in fp32 0.084° but only 1.30x faster
+    than fp32, PMA alone 0.092° at 1.57x (docs/speed.md)."""
 
     extra: dict[str, Any] = field(default_factory=dict)
     """Free-form, JSON-serialisable notes (not used by the model)."""
@@ -135,7 +143,18 @@ class SDMUniPSConfig:
     def __post_init__(self) -> None:
         for name in ("backbone_depths", "backbone_dims", "light_attention_blocks", "pool_scales"):
             setattr(self, name, tuple(int(v) for v in getattr(self, name)))
+        if self.bf16_fp32_stages is not None:
+            self.bf16_fp32_stages = tuple(str(v) for v in self.bf16_fp32_stages)
         self.validate()
+
+    def resolved_bf16_fp32_stages(self) -> tuple[str, ...]:
+        """``bf16_fp32_stages``, or when None: ("glc_upsample", "glc_aggregation.pma") for the ``paper`` preset
+        (its bf16 error needs both) and ("glc_aggregation.pma",) otherwise."""
+        if self.bf16_fp32_stages is not None:
+            return self.bf16_fp32_stages
+        if self.preset == "paper":
+            return ("glc_upsample", "glc_aggregation.pma")
+        return ("glc_aggregation.pma",)
 
     # ------------------------------------------------------------------ checks
     def validate(self) -> None:
@@ -167,6 +186,9 @@ class SDMUniPSConfig:
             raise ValueError(f"canonical_resolution must be a multiple of 32, got {self.canonical_resolution}")
         if self.pixel_samples < 1 or self.decoder_chunk < 1:
             raise ValueError("pixel_samples and decoder_chunk must be >= 1")
+        stages = set(self.bf16_fp32_stages or ()) - set(BF16_FP32_STAGES)
+        if stages:
+            raise ValueError(f"bf16_fp32_stages: unknown {sorted(stages)}; choose from {BF16_FP32_STAGES}")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
 

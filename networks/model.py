@@ -571,14 +571,6 @@ class SDMUniPS(nn.Module):
     H = W, a multiple of ``config.canonical_resolution``.
     """
 
-    #: Decoder parts that run in float32 at inference under autocast (bf16). Measured on the `paper` preset (512^2,
-    #: K=16, 3,000 pixels, deterministic "bench" weights; normals vs all-fp32): all bf16 0.66 deg mean; bf16 encoder
-    #: with an fp32 decoder 0.017 deg, so the decoder's rounding is what matters; glc_upsample in fp32 0.40 deg (+25%
-    #: decoder time), + the PMA pooling 0.34 deg (the PMA costs little since its K/V are reassociated);
-    #: glc_aggregation in fp32 0.43 deg (+50%), regressor or heads in fp32 no gain. Whole-image numbers:
-    #: benchmarks/bench_speed.py. Names: "glc_upsample", "glc_aggregation.pma".
-    fp32_under_autocast: tuple[str, ...] = ("glc_upsample", "glc_aggregation.pma")
-
     def __init__(self, config: SDMUniPSConfig):
         super().__init__()
         config.validate()
@@ -587,6 +579,9 @@ class SDMUniPS(nn.Module):
         self.glc_upsample = GLCUpsample(config)
         self.glc_aggregation = GLCAggregation(config)
         self.regressor = Regressor(config)
+        #: Decoder parts that run in float32 at inference under autocast (bf16): the config's
+        #: ``resolved_bf16_fp32_stages()`` (measurements in its docstring). Names: "glc_upsample", "glc_aggregation.pma".
+        self.fp32_under_autocast: tuple[str, ...] = config.resolved_bf16_fp32_stages()
         self.glc_aggregation.aggregation.dec[0].fp32_under_autocast = "glc_aggregation.pma" in self.fp32_under_autocast
         self._init_weights()
 

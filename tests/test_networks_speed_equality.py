@@ -11,6 +11,7 @@ Regenerate the stored file (only if the network itself changes): ``python tests/
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -23,7 +24,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from networks.checkpoint import reference_weights  # noqa: E402
-from networks.config import get_config  # noqa: E402
+from networks.config import SDMUniPSConfig, get_config  # noqa: E402
 from networks.inference import predict  # noqa: E402
 from networks.model import PMA, build_model, gaussian_smooth, reference_ops  # noqa: E402
 
@@ -152,10 +153,24 @@ if __name__ == "__main__":
     print(f"wrote {STORED}")
 
 
+def test_bf16_fp32_stages_by_preset():
+    """paper keeps glc_upsample and the PMA in fp32 under bf16, the other presets the PMA alone; a config can
+    name its own; unknown names are refused."""
+    assert get_config("paper").resolved_bf16_fp32_stages() == ("glc_upsample", "glc_aggregation.pma")
+    assert get_config("small").resolved_bf16_fp32_stages() == ("glc_aggregation.pma",)
+    assert get_config("tiny").resolved_bf16_fp32_stages() == ("glc_aggregation.pma",)
+    own = dataclasses.replace(get_config("small"), bf16_fp32_stages=["glc_upsample"])
+    assert own.resolved_bf16_fp32_stages() == ("glc_upsample",)
+    assert SDMUniPSConfig.from_json(own.to_json()) == own
+    assert build_model(dataclasses.replace(get_config("tiny"), bf16_fp32_stages=())).fp32_under_autocast == ()
+    with pytest.raises(ValueError, match="bf16_fp32_stages"):
+        dataclasses.replace(get_config("tiny"), bf16_fp32_stages=("regressor",))
+
+
 def test_bf16_inference_keeps_the_listed_decoder_stages_in_fp32():
-    """Under bf16 autocast at inference glc_upsample and the PMA pooling (model.fp32_under_autocast) return
-    float32; the other stages run in bf16; training keeps autocast everywhere."""
-    cfg = get_config("tiny", "normal")
+    """Under bf16 autocast at inference the listed stages (here glc_upsample and the PMA pooling,
+    model.fp32_under_autocast) return float32; the other stages run in bf16; training keeps autocast everywhere."""
+    cfg = dataclasses.replace(get_config("tiny", "normal"), bf16_fp32_stages=("glc_upsample", "glc_aggregation.pma"))
     model = build_model(cfg, reference_weights(cfg, "eq"))
     assert model.fp32_under_autocast == ("glc_upsample", "glc_aggregation.pma")
     seen = {}
