@@ -35,7 +35,7 @@ from typing import Any
 
 TARGETS = ("normal", "brdf")
 PRESETS = ("paper", "small", "tiny")
-BF16_FP32_STAGES = ("glc_upsample", "glc_aggregation.pma")
+BF16_FP32_STAGES = ("glc_upsample", "glc_aggregation.pma", "regressor")
 
 
 @dataclass
@@ -131,11 +131,12 @@ class SDMUniPSConfig:
     """Name of the preset this config was made from (informational, except for ``bf16_fp32_stages`` = None)."""
 
     bf16_fp32_stages: tuple[str, ...] | None = None
-    """Decoder parts that stay float32 at inference under bf16 autocast: any of "glc_upsample" and
-    "glc_aggregation.pma". None: by preset (:meth:`resolved_bf16_fp32_stages`). Measured normals, bf16 vs fp32:
-    ``paper`` (512², K=16, "bench" weights) all-bf16 0.66° mean, glc_upsample + PMA in fp32 0.34° (+25% decoder
-    time); ``small`` (bundled weights, examples/bunny K=16) glc_upsample + PMA in fp32 0.084° but only 1.30x faster
-    than fp32, PMA alone 0.092° at 1.57x (docs/speed.md)."""
+    """Decoder parts that stay float32 at inference under bf16 autocast: any of "glc_upsample",
+    "glc_aggregation.pma", "regressor". None: by preset (:meth:`resolved_bf16_fp32_stages`). Measured normals, bf16
+    vs fp32, 512², K=16 ("bench" weights, first sample set; ``benchmarks/bench_speed.py --no-old --threads 1
+    --sets 1``): ``paper`` with glc_upsample + PMA + regressor in fp32 0.28° mean (1.53x fewer CPU s than fp32;
+    glc_upsample + PMA alone 0.34-0.48°, all bf16 0.66°); ``small`` with PMA + regressor 0.11° (1.23x; PMA alone
+    0.23°). The regressor's attention is no faster in bf16 on CPU, so keeping it in fp32 is free."""
 
     extra: dict[str, Any] = field(default_factory=dict)
     """Free-form, JSON-serialisable notes (not used by the model)."""
@@ -148,13 +149,13 @@ class SDMUniPSConfig:
         self.validate()
 
     def resolved_bf16_fp32_stages(self) -> tuple[str, ...]:
-        """``bf16_fp32_stages``, or when None: ("glc_upsample", "glc_aggregation.pma") for the ``paper`` preset
-        (its bf16 error needs both) and ("glc_aggregation.pma",) otherwise."""
+        """``bf16_fp32_stages``, or when None: ("glc_upsample", "glc_aggregation.pma", "regressor") for the
+        ``paper`` preset (its bf16 error needs glc_upsample) and ("glc_aggregation.pma", "regressor") otherwise."""
         if self.bf16_fp32_stages is not None:
             return self.bf16_fp32_stages
         if self.preset == "paper":
-            return ("glc_upsample", "glc_aggregation.pma")
-        return ("glc_aggregation.pma",)
+            return ("glc_upsample", "glc_aggregation.pma", "regressor")
+        return ("glc_aggregation.pma", "regressor")
 
     # ------------------------------------------------------------------ checks
     def validate(self) -> None:

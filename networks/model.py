@@ -580,7 +580,7 @@ class SDMUniPS(nn.Module):
         self.glc_aggregation = GLCAggregation(config)
         self.regressor = Regressor(config)
         #: Decoder parts that run in float32 at inference under autocast (bf16): the config's
-        #: ``resolved_bf16_fp32_stages()`` (measurements in its docstring). Names: "glc_upsample", "glc_aggregation.pma".
+        #: ``resolved_bf16_fp32_stages()`` (measurements in its docstring). Names: "glc_upsample", "glc_aggregation.pma", "regressor".
         self.fp32_under_autocast: tuple[str, ...] = config.resolved_bf16_fp32_stages()
         self.glc_aggregation.aggregation.dec[0].fp32_under_autocast = "glc_aggregation.pma" in self.fp32_under_autocast
         self._init_weights()
@@ -695,9 +695,9 @@ class SDMUniPS(nn.Module):
             x = self._stage("glc_aggregation", torch.cat([o.to(x.dtype), x], dim=-1))  # (B*mc, Da)
             pooled.append(x.reshape(b, mc, -1))
         x = torch.cat(pooled, dim=1) if len(pooled) > 1 else pooled[0]
-        return self.regressor(x, clamp=clamp)
+        return self._stage("regressor", x, clamp=clamp)
 
-    def _stage(self, name: str, x: torch.Tensor) -> torch.Tensor:
+    def _stage(self, name: str, x: torch.Tensor, **kwargs) -> torch.Tensor:
         """Run decoder stage ``name`` on x; at inference under autocast the stages in :attr:`fp32_under_autocast`
         run in float32 (training keeps autocast everywhere)."""
         module = getattr(self, name)
@@ -705,8 +705,8 @@ class SDMUniPS(nn.Module):
         if (not self.training and name in self.fp32_under_autocast and dev in ("cpu", "cuda")
                 and torch.is_autocast_enabled(dev)):
             with torch.autocast(device_type=dev, enabled=False):
-                return module(x.float())
-        return module(x)
+                return module(x.float(), **kwargs)
+        return module(x, **kwargs)
 
     def forward(self, images: torch.Tensor, mask: torch.Tensor, pixel_index: torch.Tensor, clamp: bool = True
                 ) -> dict[str, torch.Tensor]:

@@ -154,17 +154,25 @@ if __name__ == "__main__":
 
 
 def test_bf16_fp32_stages_by_preset():
-    """paper keeps glc_upsample and the PMA in fp32 under bf16, the other presets the PMA alone; a config can
-    name its own; unknown names are refused."""
-    assert get_config("paper").resolved_bf16_fp32_stages() == ("glc_upsample", "glc_aggregation.pma")
-    assert get_config("small").resolved_bf16_fp32_stages() == ("glc_aggregation.pma",)
-    assert get_config("tiny").resolved_bf16_fp32_stages() == ("glc_aggregation.pma",)
+    """paper keeps glc_upsample, the PMA and the regressor in fp32 under bf16, the other presets the PMA and the
+    regressor; a config can name its own; unknown names are refused."""
+    assert get_config("paper").resolved_bf16_fp32_stages() == ("glc_upsample", "glc_aggregation.pma", "regressor")
+    assert get_config("small").resolved_bf16_fp32_stages() == ("glc_aggregation.pma", "regressor")
+    assert get_config("tiny").resolved_bf16_fp32_stages() == ("glc_aggregation.pma", "regressor")
     own = dataclasses.replace(get_config("small"), bf16_fp32_stages=["glc_upsample"])
     assert own.resolved_bf16_fp32_stages() == ("glc_upsample",)
     assert SDMUniPSConfig.from_json(own.to_json()) == own
     assert build_model(dataclasses.replace(get_config("tiny"), bf16_fp32_stages=())).fp32_under_autocast == ()
     with pytest.raises(ValueError, match="bf16_fp32_stages"):
-        dataclasses.replace(get_config("tiny"), bf16_fp32_stages=("regressor",))
+        dataclasses.replace(get_config("tiny"), bf16_fp32_stages=("heads",))
+    model = build_model(get_config("tiny"), reference_weights(get_config("tiny"), "eq")).eval()
+    seen = {}
+    model.regressor.comm.register_forward_hook(lambda mod, inp, out: seen.__setitem__("out", out.dtype))
+    model.glc_upsample.register_forward_hook(lambda mod, inp, out: seen.__setitem__("up", out.dtype))
+    with torch.autocast("cpu", dtype=torch.bfloat16), torch.inference_mode():
+        out = model(torch.rand(1, 2, 3, 64, 64), torch.ones(1, 1, 64, 64), torch.arange(100)[None])
+    assert seen == {"out": torch.float32, "up": torch.bfloat16}
+    assert out["normal"].dtype == torch.float32
 
 
 def test_bf16_inference_keeps_the_listed_decoder_stages_in_fp32():
@@ -175,7 +183,7 @@ def test_bf16_inference_keeps_the_listed_decoder_stages_in_fp32():
     assert model.fp32_under_autocast == ("glc_upsample", "glc_aggregation.pma")
     seen = {}
     for name, mod in (("glc_upsample", model.glc_upsample), ("aggregation SABs", model.glc_aggregation.aggregation.enc),
-                      ("pma", model.glc_aggregation.aggregation.dec[0])):
+                      ("pma", model.glc_aggregation.aggregation.dec[0]), ("regressor", model.regressor.comm)):
         mod.register_forward_hook(lambda mod, inp, out, name=name: seen.__setitem__(name, (inp[0].dtype, out.dtype)))
     x = torch.rand(1, 2, 3, 64, 64)
     mask = torch.ones(1, 1, 64, 64)
@@ -184,6 +192,7 @@ def test_bf16_inference_keeps_the_listed_decoder_stages_in_fp32():
         with torch.inference_mode():
             model.eval()(x, mask, idx)
         assert seen["glc_upsample"] == (torch.float32, torch.float32)
+        assert seen["regressor"][1] == torch.bfloat16  # not listed here: runs in bf16
         assert seen["pma"] == (torch.bfloat16, torch.float32)
         assert seen["aggregation SABs"][1] == torch.bfloat16
         model.train()(x, mask, idx)
