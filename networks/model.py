@@ -580,7 +580,8 @@ class SDMUniPS(nn.Module):
         self.glc_aggregation = GLCAggregation(config)
         self.regressor = Regressor(config)
         #: Decoder parts that run in float32 at inference under autocast (bf16): the config's
-        #: ``resolved_bf16_fp32_stages()`` (measurements in its docstring). Names: "glc_upsample", "glc_aggregation.pma", "regressor".
+        #: ``resolved_bf16_fp32_stages()`` (measurements in its docstring).
+        #: Names: "glc_upsample", "glc_aggregation.pma", "regressor".
         self.fp32_under_autocast: tuple[str, ...] = config.resolved_bf16_fp32_stages()
         self.glc_aggregation.aggregation.dec[0].fp32_under_autocast = "glc_aggregation.pma" in self.fp32_under_autocast
         self._init_weights()
