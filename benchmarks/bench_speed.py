@@ -303,8 +303,9 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, torch {torch.__version__}, {args.threads} threads, "
-          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at start; old = {args.old}, new = working "
-          "tree", flush=True)
+          f"{os.cpu_count()} CPUs ({torch.backends.cpu.get_cpu_capability()}, bf16 instructions: "
+          f"{'yes' if torch.ops.mkldnn._is_mkldnn_bf16_supported() else 'no, emulated'}), load average "
+          f"{os.getloadavg()[0]:.1f} at start; old = {args.old}, new = working tree", flush=True)
     records: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
         versions = [("new", ROOT)] if args.no_old else [("old", _old_tree(args.old, tmp)), ("new", ROOT)]

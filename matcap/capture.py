@@ -399,7 +399,7 @@ def estimate(
     """
     import torch
 
-    from networks.inference import predict, predict_scalable, predict_views
+    from networks.inference import bf16_is_native, predict, predict_scalable, predict_views
     from networks.preprocess import normalize_images
 
     if len(images) < 2:
@@ -410,6 +410,12 @@ def estimate(
             raise MatcapError(f"image {i} has shape {im.shape}, expected {shape + (3,)}")
     if mask is not None and mask.shape != shape:
         raise MatcapError(f"mask has shape {mask.shape}, expected {shape}")
+    if bf16 and not bf16_is_native(device):
+        import sys
+
+        print(f"warning: --bf16: this CPU has no bfloat16 instructions ({torch.backends.cpu.get_cpu_capability()}), "
+              "so bf16 is emulated and several times slower than the default float32: drop --bf16",
+              file=sys.stderr)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if models is None:

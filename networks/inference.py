@@ -24,6 +24,18 @@ def check_device(name: str) -> torch.device:
     return device
 
 
+def bf16_is_native(device: str | torch.device = "cpu") -> bool:
+    """Whether bfloat16 matrix products run in hardware on ``device``: always assumed on GPUs; on a CPU only with
+    AVX512-BF16 or AMX (oneDNN's own check). Without it bf16 is emulated and much slower than float32 (measured on
+    an AVX2-only EPYC: the ``small`` network at 512², K=16 took 317 s in bf16 against 58 s in fp32)."""
+    if torch.device(device).type != "cpu":
+        return True
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):  # an older / different torch build: say native, as before
+        return True
+
+
 def _check(model: SDMUniPS, images: torch.Tensor, mask: torch.Tensor, multiple: int) -> None:
     if not isinstance(images, torch.Tensor) or images.dim() != 4 or images.shape[1] != 3:
         shape = tuple(images.shape) if isinstance(images, torch.Tensor) else type(images).__name__

@@ -301,3 +301,22 @@ def test_an_odd_first_image_is_the_one_blamed(tmp_path):
     with pytest.raises(MatcapError) as exc:
         load_capture(tmp_path)
     assert str(exc.value) == "a.png is 20x12 but 3 of the 4 images are 10x10; all images must share one size"
+
+
+def test_bf16_on_a_cpu_without_bf16_instructions_warns_in_one_line(tiny_weights, monkeypatch, capsys):
+    """bf16 is emulated (several times slower than fp32) on CPUs without AVX512-BF16 / AMX: say so, still run."""
+    import torch
+
+    import networks.inference as inference
+
+    assert inference.bf16_is_native("cuda") is True
+    assert inference.bf16_is_native("cpu") == bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    images = [np.random.default_rng(i).uniform(0.05, 1, (24, 24, 3)).astype(np.float32) for i in range(2)]
+    monkeypatch.setattr(inference, "bf16_is_native", lambda device="cpu": False)
+    maps = estimate(images, None, weights=[tiny_weights], seed=1, bf16=True)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning:")]
+    assert len(lines) == 1 and "--bf16" in lines[0] and "emulated" in lines[0]
+    assert maps.meta["bf16"] is True and np.isfinite(maps.normal[maps.mask]).all()
+    monkeypatch.setattr(inference, "bf16_is_native", lambda device="cpu": True)
+    estimate(images, None, weights=[tiny_weights], seed=1, bf16=True)
+    assert "warning:" not in capsys.readouterr().err

@@ -36,7 +36,9 @@ def register(sub) -> None:
     cg.add_argument("--srgb", dest="linear", action="store_false", help="decode 8-bit images from sRGB")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu, cuda, cuda:1 (default cpu)")
     p.add_argument("--pixel-samples", type=int, help="pixels per sample set (default: the model's)")
-    p.add_argument("--bf16", action="store_true", help="run the networks under bfloat16 autocast (faster on CPU)")
+    p.add_argument("--bf16", action="store_true",
+                   help="run the networks under bfloat16 autocast (faster on GPUs and on CPUs with AVX512-BF16 or "
+                        "AMX; emulated, so slower, on other CPUs: a warning says so)")
     p.add_argument("--views", type=int, choices=(1, 2, 4, 8), default=1,
                    help="average the prediction over this many mirrored/transposed copies of the input "
                         "(test-time augmentation; costs that many times the time; default 1)")
