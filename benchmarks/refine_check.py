@@ -57,6 +57,7 @@ def sphere(args) -> None:
     t_net = time.perf_counter() - t0
     from matcap.evaluation.metrics import angular_error_map
 
+    scored = scored & maps.mask  # both rows on the same pixels
     e0 = angular_error_map(maps.normal, truth, scored)[scored]
     print(f"| network | {e0.mean():.2f} | {np.median(e0):.2f} | | {t_net:.1f} |", flush=True)
     imgs = [cap.images[i] for i in maps.meta["images_used"]]

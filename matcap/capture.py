@@ -744,6 +744,11 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     result = refine(images, maps, s, progress=progress)
     if result.warning:
         print(f"warning: {result.warning}", file=sys.stderr)
+    if result.report.get("kept_network_maps"):
+        lin = result.report["linear"]
+        print(f"note: refinement kept the networks' maps: distant lights on a diffuse surface do not explain these "
+              f"photos (residual {lin['residual']:.0%}, inliers {lin['inliers']:.0%}; fit.json 'linear'), so the "
+              f"fit could only move the maps away from the networks'; lights.json is still fitted", file=sys.stderr)
     refined = result.maps.with_constants(constants or {})
     refined.meta = dict(maps.meta)
     r = result.report
@@ -751,6 +756,7 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
         "psnr_db_mean": r["psnr_db_mean"], "normal_change_deg_mean": r["normal_change_deg_mean"],
         "light_model": s.light_model, "seconds": r["timings"]["total_s"],
         "weak_light_variation_fraction": r["light_variation"]["weak_fraction"],
+        "kept_network_maps": r["kept_network_maps"],
         "files": ["lights.json", "fit.json", "residual.png", "light_variation.png"],
     }
     refined.meta["timings"] = dict(maps.meta.get("timings", {}), refine_s=r["timings"]["total_s"])

@@ -57,6 +57,22 @@ class RefineSettings:
     variation_threshold: float = 0.08  # per-pixel light variation (std / mean over photos) below this is weak
     point_distance: float = 4.0  # start distance of point lights, in half-widths of the framing plane
     fit_brdf: bool = True  # False: only normals are refined (base colour still is: it carries the albedo)
+    light_init: str = "linear"  # "linear": Lambertian factorization, its ambiguity fixed by the network normals
+    # and the occluding contour (matcap.refine.linear; directional lights only: point lights start as "network");
+    # "network": least squares on the network's normals alone (the fit before the factorization existed)
+    contour_weight: float = 1.0  # weight of the occluding-contour normals against the network's in "linear"
+    contour_nz: float = 0.1  # n_z given to the contour pixels' normals (a pixel centre lies inside the contour)
+    contour_gate: float = 0.6  # mask-edge pixels count as occluding contour where the network's n_z is below this
+    linear_pixels: int = 20000  # pixels of the light-fit copy used by the factorization (all contour pixels too)
+    prior_target: str = "photos"  # what the normal prior pulls toward (with light_init "linear"): "network",
+    # "aligned" (the network's normals through the 3x3 that best maps them onto the photos' Lambertian normals),
+    # "photos" (those Lambertian normals)
+    linear_init: str = "svd"  # start of the factorization: "svd" (the photos alone) or "network"
+    trust_residual: float = 0.05  # the factorization must explain the photos to this relative RMS ...
+    trust_inliers: float = 0.85  # ... with this share of inlier observations; otherwise the photos are not
+    # explained by distant lights on a Lambertian-like surface (environment light, many objects, a mirror-like
+    # material), the fit would only move the maps away from the networks', and they are kept as they are (the
+    # lights are still fitted, for lights.json). inf / 0 trust every capture.
     seed: int = 0
     device: str = "cpu"
 
@@ -158,15 +174,16 @@ def _downsample(stack: np.ndarray, mask: np.ndarray, arrays: dict[str, np.ndarra
     out = {}
     for k, v in arrays.items():
         out[k] = _resize(v, hw)
-    n = out["normal"]
-    out["normal"] = n / np.linalg.norm(n, axis=-1, keepdims=True).clip(1e-6)
+    for k in ("normal", "start"):
+        if k in out:
+            out[k] = out[k] / np.linalg.norm(out[k], axis=-1, keepdims=True).clip(1e-6)
     return small, m, out
 
 
 class _Problem:
     """Observations of N pixels: obs (K, N, 3), weight (N,), saturation flags, positions, priors (torch)."""
 
-    def __init__(self, torch, stack, mask, arrays, weight, sat_level, device, idx=None):
+    def __init__(self, torch, stack, mask, arrays, weight, sat_level, device, idx=None, start=None):
         rows, cols = np.nonzero(mask)
         if idx is not None:
             rows, cols = rows[idx], cols[idx]
@@ -179,6 +196,7 @@ class _Problem:
         self.b0 = t(arrays["base"][rows, cols])
         self.r0 = t(arrays["rough"][rows, cols])
         self.m0 = t(arrays["metal"][rows, cols])
+        self.ns = self.n0 if start is None else t(start[rows, cols])  # start normals (the prior is n0)
         from matcap.refine.model import plane_positions
 
         h, w = mask.shape
@@ -193,7 +211,7 @@ class _Problem:
         new.rows, new.cols = self.rows[sl], self.cols[sl]
         tsl = sl if isinstance(sl, slice) else __import__("torch").from_numpy(np.asarray(sl)).to(self.obs.device)
         new.obs, new.sat = self.obs[:, tsl], self.sat[:, tsl]
-        for k in ("weight", "n0", "b0", "r0", "m0", "pos"):
+        for k in ("weight", "n0", "ns", "b0", "r0", "m0", "pos"):
             setattr(new, k, getattr(self, k)[tsl])
         return new
 
@@ -225,8 +243,62 @@ def _shade(lights, pos, n, b, r, m):
     return shade(n, b, r, m, wo, irr, lights.sh)
 
 
-def _init_lights(torch, prob: _Problem, s: RefineSettings, device):
-    """Lambertian least squares per photo from the network normals and base colour (robust: two reweightings)."""
+def _linear_lights(obs, mask, arrays, s: RefineSettings, rng):
+    """(K, 3) light directions and the factorization of :mod:`matcap.refine.linear` on the light-fit copy."""
+    from matcap.refine.linear import contour_normals, factorize
+
+    sel, c_normal = contour_normals(mask, arrays["normal"], gate=s.contour_gate, nz=s.contour_nz)
+    rows, cols = np.nonzero(mask)
+    on_contour = sel[rows, cols]
+    inner = np.flatnonzero(~on_contour)
+    if len(inner) > s.linear_pixels:
+        inner = np.sort(rng.choice(inner, size=s.linear_pixels, replace=False))
+    idx = np.sort(np.concatenate([inner, np.flatnonzero(on_contour)]))
+    r, c = rows[idx], cols[idx]
+    lum = np.tensordot(obs[:, r, c], np.asarray(LUMA, np.float32), axes=([2], [0]))
+    alb = arrays["base"][r, c] @ np.asarray(LUMA, np.float32)
+    fit = factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.contour_weight,
+                    init=s.linear_init)
+    return fit
+
+
+def _photo_normals(obs, mask, network, s_lum, s: RefineSettings, report=None):
+    """Start and prior normal images (H, W, 3) from the photos under the factorization's lights.
+
+    start: calibrated robust Lambertian normals where a pixel is lit in 4 photos or more, the network's elsewhere;
+    prior (``s.prior_target``): "network" as it is, "aligned": the network's normals through the global 3x3 that
+    best maps them onto the photos' normals (their flattening removed, their local detail kept), "photos": start.
+    ``report``: an earlier call's report, whose matrix is used again (for a downsampled copy).
+    """
+    from matcap.refine.linear import align, solve_normals
+
+    rows, cols = np.nonzero(mask)
+    lum = np.tensordot(obs[:, rows, cols], np.asarray(LUMA, np.float32), axes=([2], [0]))
+    net = network[rows, cols]
+    n, _, solved = solve_normals(lum, s_lum, net)
+    start = network.copy()
+    start[rows, cols] = n
+    if report is None:
+        g = align(net[solved], n[solved]) if solved.sum() >= 16 else np.eye(3)
+        report = {"trusted": True, "solved_fraction": round(float(solved.mean()), 4), "network_to_photos": g.round(5).tolist()}
+    if s.prior_target == "network":
+        return start, network, report
+    if s.prior_target == "photos":
+        return start, start, report
+    g = np.asarray(report["network_to_photos"], np.float64)
+    a = net.astype(np.float64) @ g.T
+    a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
+    a[a[:, 2] < 0.0, 2] = 0.0
+    a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
+    prior = network.copy()
+    prior[rows, cols] = a.astype(np.float32)
+    return start, prior, report
+
+
+def _init_lights(torch, prob: _Problem, s: RefineSettings, device, directions=None):
+    """Lights per photo: ``directions`` (K, 3) when given (the factorization's), else Lambertian least squares
+    from the network normals and base colour (robust: two reweightings); then the RGB irradiance by least
+    squares."""
     from matcap.refine.model import LightParams
 
     luma = torch.tensor(LUMA, device=device)
@@ -235,6 +307,15 @@ def _init_lights(torch, prob: _Problem, s: RefineSettings, device):
     k_count = prob.obs.shape[0]
     dirs, ints = [], []
     for k in range(k_count):
+        if directions is not None:
+            d = torch.as_tensor(directions[k], dtype=torch.float32, device=device)
+            d = _above_horizon(torch, d)
+            sdiff = (n @ d).clamp(min=0.0) / math.pi
+            den = ((prob.b0 * sdiff[:, None]) ** 2).sum(0).clamp(min=1e-8)
+            e = (prob.obs[k] * prob.b0 * sdiff[:, None]).sum(0) / den
+            dirs.append(d)
+            ints.append(e.clamp(min=1e-4))
+            continue
         y = (prob.obs[k] * luma).sum(-1) / alb * math.pi  # ~ E * max(n . l, 0)
         keep = y > 0.05 * torch.quantile(y, 0.95)
         L = torch.zeros(3, device=device)
@@ -249,10 +330,7 @@ def _init_lights(torch, prob: _Problem, s: RefineSettings, device):
             keep &= err < 3.0 * err[keep].median().clamp(min=1e-6) + 0.05 * y.mean()
         if not torch.isfinite(L).all() or L.norm() < 1e-6:
             L = torch.tensor([0.0, 0.0, 1.0], device=device) * y.mean()
-        d = L / L.norm()
-        if d[2] < 0.05:  # behind the object: cannot light what the camera sees; keep it at the horizon
-            d = torch.cat([d[:2], d[2:].clamp(min=0.05)])
-            d = d / d.norm()
+        d = _above_horizon(torch, L / L.norm())
         sdiff = (n @ d).clamp(min=0.0) / math.pi
         den = ((prob.b0 * sdiff[:, None]) ** 2).sum(0).clamp(min=1e-8)
         e = (prob.obs[k] * prob.b0 * sdiff[:, None]).sum(0) / den
@@ -262,6 +340,14 @@ def _init_lights(torch, prob: _Problem, s: RefineSettings, device):
     log_i = torch.log(torch.stack(ints))
     sh = torch.zeros(1 if s.ambient != "per-image" else k_count, 9, 3, device=device)
     return LightParams("directional", vec, log_i, sh)
+
+
+def _above_horizon(torch, d):
+    """A light behind the object cannot light what the camera sees: keep it at the horizon."""
+    if d[2] < 0.05:
+        d = torch.cat([d[:2], d[2:].clamp(min=0.05)])
+        d = d / d.norm()
+    return d
 
 
 def _to_point(torch, lights, prob: _Problem, s: RefineSettings):
@@ -318,6 +404,7 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
     sat_level = np.array([obs[k][mask].max(axis=0) * 0.999 for k in range(k_count)], np.float32)
     sat_level = np.where(sat_level > 0, sat_level, np.inf).astype(np.float32)
     arrays = _maps_arrays(maps)
+    network_normal = arrays["normal"]
     variation = light_variation(stack, mask)
     frac_weak, warning = variation_warning(variation, mask, s.variation_threshold)
     weight = np.clip(np.nan_to_num(variation) / s.variation_threshold, 0.1, 1.0).astype(np.float32)
@@ -337,13 +424,36 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
         w_l = _resize(weight, hw_l)
     n_l = int(mask_l.sum())
     idx = np.sort(rng.choice(n_l, size=min(n_l, s.light_pixels), replace=False))
-    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx)
-    lights = _init_lights(torch, prob, s, device)
+    if s.light_init not in ("linear", "network"):
+        raise MatcapError(f"light_init must be 'linear' or 'network', got {s.light_init!r}")
+    if s.prior_target not in ("network", "aligned", "photos"):
+        raise MatcapError(f"prior_target must be 'network', 'aligned' or 'photos', got {s.prior_target!r}")
+    start = start_l = None
+    linear_report = None
+    trusted = True
+    use_linear = s.light_init == "linear" and s.light_model == "directional"  # the factorization: distant lights
+    if use_linear:
+        linear = _linear_lights(obs_l, mask_l, arr_l, s, rng)
+        trusted = linear.residual <= s.trust_residual and linear.inliers >= s.trust_inliers
+    if not trusted:
+        linear_report = {"trusted": False, "residual": round(linear.residual, 4), "inliers": round(linear.inliers, 4),
+                         "contour_pixels": linear.contour_pixels}
+    elif use_linear:
+        s_lum = linear.directions * linear.irradiance[:, None]
+        start, prior, linear_report = _photo_normals(obs, mask, arrays["normal"], s_lum, s)
+        arrays = dict(arrays, normal=prior)
+        if hw_l == (h, w):
+            arr_l, start_l = arrays, start
+        else:
+            start_l, _, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, s)
+            arr_l = dict(arr_l, normal=_photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, s, linear_report)[1])
+    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
+    lights = _init_lights(torch, prob, s, device, linear.directions if use_linear and trusted else None)
     from matcap.refine.model import PixelParams
 
     def joint(lights, iters, label, prob=prob, px=None):
         if px is None:
-            px = PixelParams.from_maps(prob.n0, prob.b0, prob.r0, prob.m0)
+            px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
         light_t = [lights.vec, lights.log_intensity] + ([lights.sh] if s.ambient != "none" else [])
         groups = [{"params": light_t, "lr": s.lr_light}]
         if s.joint_lights:
@@ -363,22 +473,25 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
             t.requires_grad_(False)
         return lights
 
-    lights = joint(lights, s.light_iters, "lights")
+    light_iters = s.light_iters
+    lights = joint(lights, light_iters, "lights")
     if s.light_model == "point":
         lights = joint(_to_point(torch, lights, prob, s), s.light_iters, "point lights")
     timings["lights_s"] = time.perf_counter() - t0
 
     # ---- 2. per pixel, lights fixed: half size, then full size
     t0 = time.perf_counter()
-    full = _Problem(torch, obs, mask, arrays, weight, sat_level, device)
-    px_full = PixelParams.from_maps(full.n0, full.b0, full.r0, full.m0)
+    full = _Problem(torch, obs, mask, arrays, weight, sat_level, device, start=start)
+    px_full = PixelParams.from_maps(full.ns, full.b0, full.r0, full.m0)
     iters_done = {"coarse": 0, "fine": 0}
-    if s.coarse_iters > 0 and max(h, w) > 128:
+    coarse_iters, fine_iters, rounds = (s.coarse_iters, s.fine_iters, s.rounds) if trusted else (0, 0, 1)
+    if coarse_iters > 0 and max(h, w) > 128:
         hw_c = (max(8, h // 2), max(8, w // 2))
-        obs_c, mask_c, arr_c = _downsample(obs, mask, arrays, hw_c)
-        coarse = _Problem(torch, obs_c, mask_c, arr_c, _resize(weight, hw_c), sat_level, device)
-        px_c0 = PixelParams.from_maps(coarse.n0, coarse.b0, coarse.r0, coarse.m0)
-        px_c = _solve_pixels(torch, coarse, px_c0, lights, s, c, s.coarse_iters, bar, "maps 1/2")
+        obs_c, mask_c, arr_c = _downsample(obs, mask, arrays if start is None else dict(arrays, start=start), hw_c)
+        coarse = _Problem(torch, obs_c, mask_c, arr_c, _resize(weight, hw_c), sat_level, device,
+                          start=arr_c.get("start"))
+        px_c0 = PixelParams.from_maps(coarse.ns, coarse.b0, coarse.r0, coarse.m0)
+        px_c = _solve_pixels(torch, coarse, px_c0, lights, s, c, coarse_iters, bar, "maps 1/2")
         # upsample the corrections (parameter deltas), add them to the full-size start
         delta = np.zeros(hw_c + (7,), np.float32)
         d = torch.cat([(a - b0).reshape(len(coarse), -1) for a, b0 in zip(px_c.tensors(), px_c0.tensors())], 1)
@@ -387,10 +500,11 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
         up_t = torch.from_numpy(up).to(device)
         px_full = PixelParams(px_full.grad + up_t[:, 0:2], px_full.base_logit + up_t[:, 2:5],
                               px_full.rough_logit + up_t[:, 5], px_full.metal_logit + up_t[:, 6])
-        iters_done["coarse"] = s.coarse_iters
-    px_full = _solve_pixels(torch, full, px_full, lights, s, c, s.fine_iters, bar, "maps")
-    iters_done["fine"] = s.fine_iters
-    for r in range(1, s.rounds):  # lights again from the refined maps (frozen), then the maps again
+        iters_done["coarse"] = coarse_iters
+    if fine_iters > 0:
+        px_full = _solve_pixels(torch, full, px_full, lights, s, c, fine_iters, bar, "maps")
+    iters_done["fine"] = fine_iters
+    for r in range(1, rounds):  # lights again from the refined maps (frozen), then the maps again
         idx_r = np.sort(rng.choice(len(full), size=min(len(full), s.light_pixels), replace=False))
         sub = full.part(idx_r)
         px_sub = PixelParams(*(t[torch.from_numpy(idx_r)].detach() for t in px_full.tensors()))
@@ -433,22 +547,30 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
 
     light_entries = lights_to_entries(lights, scale)
     keep_meta = {k: v for k, v in maps.meta.items()}
+    if not trusted:  # the photos cannot correct the networks' maps: they are kept, bit for bit
+        n_img = np.asarray(maps.normal, np.float32).copy()
+        kept = maps.with_defaults()
+        base, rough, metal = (np.asarray(v, np.float32).copy() for v in (kept.base_color, kept.roughness, kept.metallic))
     refined = MaterialMaps(normal=n_img, mask=mask, base_color=base,
                            roughness=rough if (maps.roughness is not None or s.fit_brdf) else None,
                            metallic=metal if (maps.metallic is not None or s.fit_brdf) else None,
                            height=None, meta=keep_meta)
-    n_change = np.degrees(np.arccos(np.clip((n_img[mask] * arrays["normal"][mask]).sum(-1), -1, 1)))
+    n_change = np.degrees(np.arccos(np.clip((n_img[mask] * network_normal[mask]).sum(-1), -1, 1)))
     report = {
         "psnr_db": [round(p, 3) for p in psnr],
         "psnr_db_mean": round(float(np.mean(psnr)), 3),
         "residual_mean": round(float(np.nanmean(residual)), 5),
-        "iterations": {"lights": s.light_iters * (2 if s.light_model == "point" else 1), **iters_done},
+        "iterations": {"lights": light_iters * (2 if s.light_model == "point" else 1), **iters_done},
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(float(n_change.mean()), 3),
         "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(frac_weak, 4),
                             "warning": warning},
         "photo_scale": scale,
+        "linear": None if linear_report is None else {
+            **linear_report, "contour_pixels": linear.contour_pixels, "residual": round(linear.residual, 4),
+            "inliers": round(linear.inliers, 4)},
+        "kept_network_maps": not trusted,
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
@@ -558,7 +680,7 @@ def fit_light_only(image: np.ndarray, maps: MaterialMaps, settings: RefineSettin
     full = _Problem(torch, obs, mask, arrays, np.ones(mask.shape, np.float32), sat, device)
     from matcap.refine.model import PixelParams
 
-    px = PixelParams.from_maps(full.n0, full.b0, full.r0, full.m0)
+    px = PixelParams.from_maps(full.ns, full.b0, full.r0, full.m0)
     rng = np.random.default_rng(s.seed)
     idx = np.sort(rng.choice(len(full), size=min(len(full), 4 * s.light_pixels), replace=False))
     sub = full.part(idx)
