@@ -30,7 +30,7 @@ _SKIP = re.compile(
 _MASK = re.compile(r"^(mask|.*\.mask)$", re.IGNORECASE)
 
 #: Whether `matcap capture` refines the maps when neither --refine nor --no-refine is given (docs/refine.md).
-REFINE_BY_DEFAULT = False
+REFINE_BY_DEFAULT = True
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "networks" / "weights"
 DEFAULT_WEIGHTS = {"normal": WEIGHTS_DIR / "normal_small.safetensors", "brdf": WEIGHTS_DIR / "brdf_small.safetensors"}
@@ -745,10 +745,8 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     if result.warning:
         print(f"warning: {result.warning}", file=sys.stderr)
     if result.report.get("kept_network_maps"):
-        lin = result.report["linear"]
-        print(f"note: refinement kept the networks' maps: distant lights on a diffuse surface do not explain these "
-              f"photos (residual {lin['residual']:.0%}, inliers {lin['inliers']:.0%}; fit.json 'linear'), so the "
-              f"fit could only move the maps away from the networks'; lights.json is still fitted", file=sys.stderr)
+        print(f"note: refinement kept the networks' maps: {result.report['linear']['reason']}; lights.json is still "
+              f"fitted", file=sys.stderr)
     refined = result.maps.with_constants(constants or {})
     refined.meta = dict(maps.meta)
     r = result.report

@@ -429,26 +429,30 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
     if s.prior_target not in ("network", "aligned", "photos"):
         raise MatcapError(f"prior_target must be 'network', 'aligned' or 'photos', got {s.prior_target!r}")
     start = start_l = None
-    linear_report = None
+    linear = linear_report = None
     trusted = True
     use_linear = s.light_init == "linear" and s.light_model == "directional"  # the factorization: distant lights
-    if use_linear:
+    if use_linear and k_count < 4:
+        trusted = False
+        linear_report = {"trusted": False, "reason": f"{k_count} photos: per-pixel normals need 4 or more"}
+    elif use_linear:
         linear = _linear_lights(obs_l, mask_l, arr_l, s, rng)
         trusted = linear.residual <= s.trust_residual and linear.inliers >= s.trust_inliers
-    if not trusted:
-        linear_report = {"trusted": False, "residual": round(linear.residual, 4), "inliers": round(linear.inliers, 4),
-                         "contour_pixels": linear.contour_pixels}
-    elif use_linear:
+        if not trusted:
+            linear_report = {"trusted": False, "reason": (
+                f"distant lights on a diffuse surface do not explain the photos (residual {linear.residual:.0%}, "
+                f"inliers {linear.inliers:.0%}; trusted from {s.trust_residual:.0%} / {s.trust_inliers:.0%})")}
+    if linear is not None and trusted:  # start (and prior) normals from the photos under these lights
         s_lum = linear.directions * linear.irradiance[:, None]
         start, prior, linear_report = _photo_normals(obs, mask, arrays["normal"], s_lum, s)
         arrays = dict(arrays, normal=prior)
         if hw_l == (h, w):
             arr_l, start_l = arrays, start
         else:
-            start_l, _, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, s)
-            arr_l = dict(arr_l, normal=_photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, s, linear_report)[1])
+            start_l, prior_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, s, linear_report)
+            arr_l = dict(arr_l, normal=prior_l)
     prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
-    lights = _init_lights(torch, prob, s, device, linear.directions if use_linear and trusted else None)
+    lights = _init_lights(torch, prob, s, device, linear.directions if linear is not None and trusted else None)
     from matcap.refine.model import PixelParams
 
     def joint(lights, iters, label, prob=prob, px=None):
@@ -567,9 +571,9 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
         "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(frac_weak, 4),
                             "warning": warning},
         "photo_scale": scale,
-        "linear": None if linear_report is None else {
-            **linear_report, "contour_pixels": linear.contour_pixels, "residual": round(linear.residual, 4),
-            "inliers": round(linear.inliers, 4)},
+        "linear": None if linear_report is None else {**linear_report, **({} if linear is None else {
+            "contour_pixels": linear.contour_pixels, "residual": round(linear.residual, 4),
+            "inliers": round(linear.inliers, 4)})},
         "kept_network_maps": not trusted,
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),

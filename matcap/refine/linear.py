@@ -134,7 +134,7 @@ def factorize(luminance: np.ndarray, normal: np.ndarray, albedo: np.ndarray, con
     w = (y > shadow * np.percentile(y, 95, axis=1, keepdims=True)).astype(np.float64)  # not in shadow
     b = s = None
     lit = w.all(axis=0)
-    if init == "svd" and lit.sum() >= 32:  # exact for Lambertian pixels lit in every photo, whatever the prior
+    if init == "svd" and lit.sum() >= 32 and k_count >= 3:  # exact for Lambertian pixels lit in every photo, whatever the prior
         u, sv, vt = np.linalg.svd(y[:, lit], full_matrices=False)
         s = u[:, :3] * np.sqrt(sv[:3])
         b = _solve3(np.einsum("kp,ki,kj->pij", w, s, s), np.einsum("kp,kp,ki->pi", w, y, s))
