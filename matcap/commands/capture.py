@@ -32,7 +32,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed for image subset and pixel sampling (default 0)")
     cg = p.add_mutually_exclusive_group()
     cg.add_argument("--linear", action="store_true", default=None,
-                    help="take 8-bit images as linear (default: decode sRGB; with --refine the fit decides)")
+                    help="take 8-bit images as linear (default: the fit of the photos decides; with --no-refine: "
+                         "decode sRGB)")
     cg.add_argument("--srgb", dest="linear", action="store_false", help="decode 8-bit images from sRGB")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu, cuda, cuda:1 (default cpu)")
     p.add_argument("--pixel-samples", type=int, help="pixels per sample set (default: the model's)")
@@ -50,7 +51,7 @@ def register(sub) -> None:
                         "non-metal (repeatable; recorded in capture.json)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--refine", dest="refine", action="store_true", default=None,
-                   help="after the networks, fit the lights and the maps to the photos (docs/refine.md)")
+                   help="after the networks, fit the lights and the maps to the photos (the default; docs/refine.md)")
     g.add_argument("--no-refine", dest="refine", action="store_false",
                    help="keep the networks' maps as they are (no lights.json / fit.json)")
     p.add_argument("--refine-light", choices=("directional", "point"), default="directional",
