@@ -83,6 +83,12 @@ def _solve3(a: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.linalg.solve(a, r[..., None])[..., 0]
 
 
+def _outer_sum(w: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """sum_j w[i, j] v_j v_j^T for every row i: (M, N) x (N, 3) -> (M, 3, 3), as one matrix product."""
+    outer = (v[:, :, None] * v[:, None, :]).reshape(len(v), 9)
+    return (w @ outer).reshape(-1, 3, 3)
+
+
 def _weights(y: np.ndarray, shading: np.ndarray, c: float, shadow: float) -> np.ndarray:
     res = y - shading
     w = 1.0 / (1.0 + (res / c) ** 2)
@@ -137,7 +143,7 @@ def factorize(luminance: np.ndarray, normal: np.ndarray, albedo: np.ndarray, con
     if init == "svd" and lit.sum() >= 32 and k_count >= 3:  # exact for Lambertian pixels lit in every photo, whatever the prior
         u, sv, vt = np.linalg.svd(y[:, lit], full_matrices=False)
         s = u[:, :3] * np.sqrt(sv[:3])
-        b = _solve3(np.einsum("kp,ki,kj->pij", w, s, s), np.einsum("kp,kp,ki->pi", w, y, s))
+        b = _solve3(_outer_sum(w.T, s), (w * y).T @ s)
         b, s = _resolve(b, s, prior, prior_w * (w.sum(0) >= 3.5))
     if b is None or not np.isfinite(b).all():
         start = np.asarray(normal, np.float64)
@@ -147,10 +153,10 @@ def factorize(luminance: np.ndarray, normal: np.ndarray, albedo: np.ndarray, con
     solved = np.zeros(p_count, bool)  # pixels whose b came from the photos (only they may decide A)
     for _ in range(rounds):
         for _ in range(2):  # lights, pixels fixed
-            s = _solve3(np.einsum("kp,pi,pj->kij", w, b, b), np.einsum("kp,kp,pi->ki", w, y, b))
+            s = _solve3(_outer_sum(w, b), (w * y) @ b)
             w = _weights(y, s @ b.T, cauchy, shadow)
         for _ in range(2):  # pixels, lights fixed (pixels lit in fewer than 4 photos keep their value)
-            b_new = _solve3(np.einsum("kp,ki,kj->pij", w, s, s), np.einsum("kp,kp,ki->pi", w, y, s))
+            b_new = _solve3(_outer_sum(w.T, s), (w * y).T @ s)
             ok = (w.sum(0) >= 3.5) & np.isfinite(b_new).all(axis=1)
             solved |= ok
             b = np.where(ok[:, None], b_new, b)
@@ -182,7 +188,7 @@ def solve_normals(luminance: np.ndarray, lights: np.ndarray, normal: np.ndarray,
     w = _weights(y, s @ b.T, cauchy, shadow)
     solved = np.zeros(len(n0), bool)
     for _ in range(rounds):
-        b_new = _solve3(np.einsum("kp,ki,kj->pij", w, s, s), np.einsum("kp,kp,ki->pi", w, y, s))
+        b_new = _solve3(_outer_sum(w.T, s), (w * y).T @ s)
         ok = (w.sum(0) >= 3.5) & np.isfinite(b_new).all(axis=1) & (b_new[:, 2] > 0)
         solved = ok
         b = np.where(ok[:, None], b_new, b)
