@@ -49,9 +49,13 @@ def test_capture_refine_writes_lights_fit_and_diagnostics_and_refine_reruns(tiny
     first = lights["images"][0]
     assert first["file"] == "img_00.png" and first["kind"] == "directional" and len(first["sh"]) == 9
     fit = json.loads((out / "fit.json").read_text())
-    assert len(fit["psnr_db"]) == 5 and fit["iterations"]["fine"] > 0 and fit["settings"]["seed"] == 0
+    assert len(fit["psnr_db"]) == 5 and fit["settings"]["seed"] == 0
+    # tiny random-weight networks: their normals cannot fix the factorization's ambiguity, the check says so and
+    # the maps are kept (no per-pixel iterations), with the reason in fit.json
+    assert fit["kept_network_maps"] and fit["iterations"]["fine"] == 0 and fit["linear"]["reason"]
     info = json.loads((out / "capture.json").read_text())
-    assert {"lights.json", "fit.json"} <= set(info["files"]) and info["refine"]["psnr_db_mean"] > 10  # tiny random-weight networks: a poor start
+    assert {"lights.json", "fit.json"} <= set(info["files"]) and info["refine"]["kept_network_maps"]
+    assert np.isfinite(info["refine"]["psnr_db_mean"])  # the random maps, kept, re-rendered under the fitted lights
     # matcap refine: refuses to replace the result without --overwrite, leaves it intact, then replaces it
     before = (out / "normal.exr").read_bytes()
     r2 = run_cli("refine", str(out), str(folder), "--quiet")

@@ -174,3 +174,54 @@ def test_refine_keeps_the_network_maps_when_the_photos_are_not_explained():
     assert res.report["iterations"]["fine"] == 0 and len(res.lights) == len(noise)
     for name in ("normal", "base_color", "roughness", "metallic"):
         assert np.array_equal(getattr(res.maps, name), getattr(maps, name)), name
+
+
+def _bumpy_plane(side: int = 64, amplitude: float = 1.0):
+    """A full-frame plane with smooth bumps (no contour) under 10 lights, rendered by the fit's own model."""
+    import torch
+    from scipy import ndimage
+
+    from matcap.refine.model import shade_directional
+
+    rng = np.random.default_rng(0)
+    height = ndimage.gaussian_filter(rng.normal(size=(side, side)), 3)
+    gy, gx = np.gradient(height / height.std() * amplitude)
+    n = np.dstack([-gx, gy, np.ones_like(gx)])
+    n = (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+    base = np.full((side, side, 3), 0.5, np.float32)
+    lights = cone_lights(10, 40.0, seed=1)
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
+    with torch.no_grad():
+        px = shade_directional(t(n.reshape(-1, 3)), t(base.reshape(-1, 3)), torch.full((side * side,), 0.6),
+                               torch.zeros(side * side), t(lights), torch.full((10, 3), 2.0),
+                               torch.zeros(1, 9, 3)).numpy()
+    return n, np.ones((side, side), bool), base, list(px.reshape(10, side, side, 3))
+
+
+QUICK = dict(seed=0, fine_iters=10, coarse_iters=0, light_iters=10)
+
+
+def test_a_flat_sample_keeps_the_maps():
+    """One normal for every pixel: the photos are rank 1 and cannot tell where the lights were."""
+    n, mask, base, photos = _bumpy_plane(amplitude=0.0)
+    maps = MaterialMaps(normal=n, mask=mask, base_color=base)
+    res = refine(photos, maps, RefineSettings(**QUICK))
+    lin = res.report["linear"]
+    assert not lin["trusted"] and lin["spread"] < 0.02 and "too flat" in lin["reason"]
+    assert res.report["kept_network_maps"] and np.array_equal(res.maps.normal, n)
+
+
+def test_lights_that_turn_most_normals_away_are_not_trusted():
+    """A bumpy plane (spread 0.09, residual 2 %: the photos are fine) but a prior unrelated to the surface
+    (random normals): the matrix it picks gives lights under which almost no pixel faces the camera."""
+    n, mask, base, photos = _bumpy_plane()
+    good = refine(photos, MaterialMaps(normal=n, mask=mask, base_color=base), RefineSettings(**QUICK))
+    assert good.report["linear"]["trusted"] and good.report["linear"]["solved_fraction"] > 0.95
+    rng = np.random.default_rng(1)
+    noise = rng.normal(size=n.shape)
+    noise[..., 2] = np.abs(noise[..., 2]) + 0.3
+    noise = (noise / np.linalg.norm(noise, axis=-1, keepdims=True)).astype(np.float32)
+    bad = refine(photos, MaterialMaps(normal=noise, mask=mask, base_color=base), RefineSettings(**QUICK))
+    lin = bad.report["linear"]
+    assert not lin["trusted"] and lin["solved_fraction"] < 0.5 and "facing the camera" in lin["reason"]
+    assert np.array_equal(bad.maps.normal, noise)

@@ -75,6 +75,11 @@ class RefineSettings:
     # explained by distant lights on a Lambertian-like surface (environment light, many objects, a mirror-like
     # material), the fit would only move the maps away from the networks', and they are kept as they are (the
     # lights are still fitted, for lights.json). inf / 0 trust every capture.
+    trust_solved: float = 0.5  # ... and under the lights found, this share of the pixels must get a Lambertian
+    # normal facing the camera (UW: buddha 0.66, the others 0.97-0.99; a bumpy plane whose lights the network's
+    # normals resolved wrongly, 65 degrees off: 0.07-0.25)
+    trust_spread: float = 0.02  # ... and the photos must not be (nearly) rank 1, as a flat sample's are (its one
+    # normal cannot tell the lights apart: a flat wood sample 0.003, UW captures 0.07-0.09)
     seed: int = 0
     device: str = "cpu"
 
@@ -439,14 +444,25 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
         linear_report = {"trusted": False, "reason": f"{k_count} photos: per-pixel normals need 4 or more"}
     elif use_linear:
         linear = _linear_lights(obs_l, mask_l, arr_l, s, rng)
-        trusted = linear.residual <= s.trust_residual and linear.inliers >= s.trust_inliers
-        if not trusted:
+        trusted = (linear.residual <= s.trust_residual and linear.inliers >= s.trust_inliers
+                   and linear.spread >= s.trust_spread)
+        if linear.spread < s.trust_spread:
+            linear_report = {"trusted": False, "reason": (
+                f"the surface is too flat for the photos to tell where the lights were (third singular value "
+                f"{linear.spread:.3f} of the first; trusted from {s.trust_spread:g})")}
+        elif not trusted:
             linear_report = {"trusted": False, "reason": (
                 f"distant lights on a diffuse surface do not explain the photos (residual {linear.residual:.0%}, "
                 f"inliers {linear.inliers:.0%}; trusted from {s.trust_residual:.0%} / {s.trust_inliers:.0%})")}
     if linear is not None and trusted:  # start (and prior) normals from the photos under these lights
         s_lum = linear.directions * linear.irradiance[:, None]
         start, prior, linear_report = _photo_normals(obs, mask, arrays["normal"], s_lum, s)
+        if linear_report["solved_fraction"] < s.trust_solved:  # implausible lights: most normals face away
+            trusted, start = False, None
+            linear_report = {**linear_report, "trusted": False, "reason": (
+                f"under the lights found only {linear_report['solved_fraction']:.0%} of the object's pixels get a "
+                f"normal facing the camera (trusted from {s.trust_solved:.0%})")}
+    if linear is not None and trusted:
         arrays = dict(arrays, normal=prior)
         if hw_l == (h, w):
             arr_l, start_l = arrays, start
@@ -474,6 +490,9 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
             loss = per.mean()
             loss.backward()
             opt.step()
+            if lights.kind == "point":  # a point light behind the framing plane lights nothing the camera sees
+                with torch.no_grad():
+                    lights.vec[:, 2].clamp_(min=0.05)
             bar.step(label, float(loss.detach()))
         for t in lights.tensors():
             t.requires_grad_(False)
@@ -576,7 +595,7 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
         "photo_scale": scale,
         "linear": None if linear_report is None else {**linear_report, **({} if linear is None else {
             "contour_pixels": linear.contour_pixels, "residual": round(linear.residual, 4),
-            "inliers": round(linear.inliers, 4)})},
+            "inliers": round(linear.inliers, 4), "spread": round(linear.spread, 5)})},
         "kept_network_maps": not trusted,
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),

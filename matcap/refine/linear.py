@@ -37,8 +37,9 @@ class LinearFit:
     robust weights (0: shadowed or an outlier); contour_pixels: how many pixels the contour cue used;
     residual: RMS of the robust fit's residual over the weighted observations, relative to the mean luminance;
     inliers: the mean robust weight. Together they say whether distant lights on a Lambertian-like surface explain
-    the photos at all (measured: UW captures 0.024-0.061 / 0.90-0.94; ToyPS sphere 0.23 / 0.26; environment-lit
-    and multi-object synthetic scenes 0.09-0.41 / 0.33-0.86).
+    the photos at all (docs/refine.md has the measured values); spread: the third singular value of ``luminance``
+    over the first: near 0 when the photos are (nearly) rank 1, as those of a flat sample are, whose one normal
+    cannot tell the lights' directions apart (a flat wood sample: 0.003; the UW captures: 0.07-0.09).
     """
 
     directions: np.ndarray
@@ -49,6 +50,7 @@ class LinearFit:
     contour_pixels: int
     residual: float = float("nan")
     inliers: float = float("nan")
+    spread: float = float("nan")
 
 
 def contour_normals(mask: np.ndarray, normal: np.ndarray, gate: float = 0.6, nz: float = 0.1,
@@ -124,6 +126,8 @@ def factorize(luminance: np.ndarray, normal: np.ndarray, albedo: np.ndarray, con
         raise ValueError(f"init must be 'svd' or 'network', got {init!r}")
     y = np.asarray(luminance, np.float64)
     k_count, p_count = y.shape
+    sv = np.linalg.svd(y, compute_uv=False)
+    spread = float(sv[2] / sv[0]) if len(sv) >= 3 and sv[0] > 0 else 0.0
     if normal.shape != (p_count, 3):
         raise ValueError(f"normal must be ({p_count}, 3), got {normal.shape}")
     prior = np.asarray(normal, np.float64)
@@ -170,7 +174,7 @@ def factorize(luminance: np.ndarray, normal: np.ndarray, albedo: np.ndarray, con
     dirs = s / np.maximum(irr, 1e-12)[:, None]
     pred = np.clip(s @ b.T, 0.0, None)
     residual = float(np.sqrt((w * (pred - y) ** 2).sum() / max(w.sum(), 1e-12)) / max(float(y.mean()), 1e-12))
-    return LinearFit(dirs, irr, n, size, w, n_contour, residual, float(w.mean()))
+    return LinearFit(dirs, irr, n, size, w, n_contour, residual, float(w.mean()), spread)
 
 
 def solve_normals(luminance: np.ndarray, lights: np.ndarray, normal: np.ndarray, rounds: int = 4,
