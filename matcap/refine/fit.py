@@ -251,7 +251,7 @@ def _shade(lights, pos, n, b, r, m):
 
 
 def _linear_lights(obs, mask, arrays, s: RefineSettings, rng):
-    """(K, 3) light directions and the factorization of :mod:`matcap.refine.linear` on the light-fit copy."""
+    """The factorization (:class:`matcap.refine.linear.LinearFit`) of the light-fit copy's photos."""
     from matcap.refine.linear import contour_normals, factorize
 
     sel, c_normal = contour_normals(mask, arrays["normal"], gate=s.contour_gate, nz=s.contour_nz)
@@ -264,9 +264,25 @@ def _linear_lights(obs, mask, arrays, s: RefineSettings, rng):
     r, c = rows[idx], cols[idx]
     lum = np.tensordot(obs[:, r, c], np.asarray(LUMA, np.float32), axes=([2], [0]))
     alb = arrays["base"][r, c] @ np.asarray(LUMA, np.float32)
-    fit = factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.contour_weight,
-                    init=s.linear_init)
-    return fit
+    return factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.contour_weight,
+                     init=s.linear_init)
+
+
+def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSettings) -> str | None:
+    """Why the factorization's lights may not move the maps (one line), or None: the check of docs/refine.md
+    (``solved_fraction`` None: the photos' normals are not solved yet, that part of the check waits)."""
+    if k_count < 4:
+        return f"{k_count} photos: per-pixel normals need 4 or more"
+    if linear.spread < s.trust_spread:
+        return (f"the surface is too flat for the photos to tell where the lights were (third singular value "
+                f"{linear.spread:.3f} of the first; trusted from {s.trust_spread:g})")
+    if linear.residual > s.trust_residual or linear.inliers < s.trust_inliers:
+        return (f"distant lights on a diffuse surface do not explain the photos (residual {linear.residual:.0%}, "
+                f"inliers {linear.inliers:.0%}; trusted from {s.trust_residual:.0%} / {s.trust_inliers:.0%})")
+    if solved_fraction is not None and solved_fraction < s.trust_solved:  # implausible lights: normals face away
+        return (f"under the lights found only {solved_fraction:.0%} of the object's pixels get a normal facing the "
+                f"camera (trusted from {s.trust_solved:.0%})")
+    return None
 
 
 def _photo_normals(obs, mask, network, s_lum, s: RefineSettings, report=None):
@@ -287,7 +303,7 @@ def _photo_normals(obs, mask, network, s_lum, s: RefineSettings, report=None):
     start[rows, cols] = n
     if report is None:
         g = align(net[solved], n[solved]) if solved.sum() >= 16 else np.eye(3)
-        report = {"trusted": True, "solved_fraction": round(float(solved.mean()), 4), "network_to_photos": g.round(5).tolist()}
+        report = {"solved_fraction": round(float(solved.mean()), 4), "network_to_photos": g.round(5).tolist()}
     if s.prior_target == "network":
         return start, network, report
     if s.prior_target == "photos":
@@ -315,29 +331,9 @@ def _init_lights(torch, prob: _Problem, s: RefineSettings, device, directions=No
     dirs, ints = [], []
     for k in range(k_count):
         if directions is not None:
-            d = torch.as_tensor(directions[k], dtype=torch.float32, device=device)
-            d = _above_horizon(torch, d)
-            sdiff = (n @ d).clamp(min=0.0) / math.pi
-            den = ((prob.b0 * sdiff[:, None]) ** 2).sum(0).clamp(min=1e-8)
-            e = (prob.obs[k] * prob.b0 * sdiff[:, None]).sum(0) / den
-            dirs.append(d)
-            ints.append(e.clamp(min=1e-4))
-            continue
-        y = (prob.obs[k] * luma).sum(-1) / alb * math.pi  # ~ E * max(n . l, 0)
-        keep = y > 0.05 * torch.quantile(y, 0.95)
-        L = torch.zeros(3, device=device)
-        for _ in range(3):
-            A, b = n[keep], y[keep]
-            if A.shape[0] < 8:
-                break
-            L = torch.linalg.lstsq(A, b[:, None]).solution[:, 0]
-            shading = n @ L
-            keep = (shading > 0.05 * shading.max().clamp(min=1e-6)) & (y > 0.02 * torch.quantile(y, 0.95))
-            err = (shading - y).abs()
-            keep &= err < 3.0 * err[keep].median().clamp(min=1e-6) + 0.05 * y.mean()
-        if not torch.isfinite(L).all() or L.norm() < 1e-6:
-            L = torch.tensor([0.0, 0.0, 1.0], device=device) * y.mean()
-        d = _above_horizon(torch, L / L.norm())
+            d = _above_horizon(torch, torch.as_tensor(directions[k], dtype=torch.float32, device=device))
+        else:
+            d = _above_horizon(torch, _lambertian_direction(torch, prob.obs[k], n, alb, luma))
         sdiff = (n @ d).clamp(min=0.0) / math.pi
         den = ((prob.b0 * sdiff[:, None]) ** 2).sum(0).clamp(min=1e-8)
         e = (prob.obs[k] * prob.b0 * sdiff[:, None]).sum(0) / den
@@ -347,6 +343,27 @@ def _init_lights(torch, prob: _Problem, s: RefineSettings, device, directions=No
     log_i = torch.log(torch.stack(ints))
     sh = torch.zeros(1 if s.ambient != "per-image" else k_count, 9, 3, device=device)
     return LightParams("directional", vec, log_i, sh)
+
+
+def _lambertian_direction(torch, obs_k, n, alb, luma):
+    """Unit direction of photo k's light by robust Lambertian least squares on normals ``n`` (N, 3) and luminance
+    albedo ``alb`` (N,): ``obs_k`` (N, 3); attached shadows and outliers dropped in 3 rounds."""
+    device = obs_k.device
+    y = (obs_k * luma).sum(-1) / alb * math.pi  # ~ E * max(n . l, 0)
+    keep = y > 0.05 * torch.quantile(y, 0.95)
+    L = torch.zeros(3, device=device)
+    for _ in range(3):
+        A, b = n[keep], y[keep]
+        if A.shape[0] < 8:
+            break
+        L = torch.linalg.lstsq(A, b[:, None]).solution[:, 0]
+        shading = n @ L
+        keep = (shading > 0.05 * shading.max().clamp(min=1e-6)) & (y > 0.02 * torch.quantile(y, 0.95))
+        err = (shading - y).abs()
+        keep &= err < 3.0 * err[keep].median().clamp(min=1e-6) + 0.05 * y.mean()
+    if not torch.isfinite(L).all() or L.norm() < 1e-6:
+        L = torch.tensor([0.0, 0.0, 1.0], device=device) * y.mean()
+    return L / L.norm()
 
 
 def _above_horizon(torch, d):
@@ -437,31 +454,18 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
         raise MatcapError(f"prior_target must be 'network', 'aligned' or 'photos', got {s.prior_target!r}")
     start = start_l = None
     linear = linear_report = None
-    trusted = True
-    use_linear = s.light_init == "linear" and s.light_model == "directional"  # the factorization: distant lights
-    if use_linear and k_count < 4:
-        trusted = False
-        linear_report = {"trusted": False, "reason": f"{k_count} photos: per-pixel normals need 4 or more"}
-    elif use_linear:
-        linear = _linear_lights(obs_l, mask_l, arr_l, s, rng)
-        trusted = (linear.residual <= s.trust_residual and linear.inliers >= s.trust_inliers
-                   and linear.spread >= s.trust_spread)
-        if linear.spread < s.trust_spread:
-            linear_report = {"trusted": False, "reason": (
-                f"the surface is too flat for the photos to tell where the lights were (third singular value "
-                f"{linear.spread:.3f} of the first; trusted from {s.trust_spread:g})")}
-        elif not trusted:
-            linear_report = {"trusted": False, "reason": (
-                f"distant lights on a diffuse surface do not explain the photos (residual {linear.residual:.0%}, "
-                f"inliers {linear.inliers:.0%}; trusted from {s.trust_residual:.0%} / {s.trust_inliers:.0%})")}
-    if linear is not None and trusted:  # start (and prior) normals from the photos under these lights
-        s_lum = linear.directions * linear.irradiance[:, None]
-        start, prior, linear_report = _photo_normals(obs, mask, arrays["normal"], s_lum, s)
-        if linear_report["solved_fraction"] < s.trust_solved:  # implausible lights: most normals face away
-            trusted, start = False, None
-            linear_report = {**linear_report, "trusted": False, "reason": (
-                f"under the lights found only {linear_report['solved_fraction']:.0%} of the object's pixels get a "
-                f"normal facing the camera (trusted from {s.trust_solved:.0%})")}
+    if s.light_init == "linear" and s.light_model == "directional":  # the factorization: distant lights
+        linear_report = {}
+        if k_count >= 4:
+            linear = _linear_lights(obs_l, mask_l, arr_l, s, rng)
+        if _distrust(k_count, linear, None, s) is None:  # start (and prior) normals from the photos' lights
+            s_lum = linear.directions * linear.irradiance[:, None]
+            start, prior, linear_report = _photo_normals(obs, mask, arrays["normal"], s_lum, s)
+        reason = _distrust(k_count, linear, linear_report.get("solved_fraction"), s)
+        linear_report = {**linear_report, "trusted": reason is None, **({"reason": reason} if reason else {})}
+    trusted = linear_report is None or linear_report["trusted"]
+    if not trusted:
+        start = None
     if linear is not None and trusted:
         arrays = dict(arrays, normal=prior)
         if hw_l == (h, w):

@@ -25,9 +25,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-LUMA = np.array([0.2126, 0.7152, 0.0722])
-
-
 @dataclass
 class LinearFit:
     """Result of :func:`factorize` for P object pixels and K photos.
@@ -126,12 +123,13 @@ def factorize(luminance: np.ndarray, normal: np.ndarray, albedo: np.ndarray, con
         raise ValueError(f"init must be 'svd' or 'network', got {init!r}")
     y = np.asarray(luminance, np.float64)
     k_count, p_count = y.shape
-    sv = np.linalg.svd(y, compute_uv=False)
-    spread = float(sv[2] / sv[0]) if len(sv) >= 3 and sv[0] > 0 else 0.0
     if normal.shape != (p_count, 3):
         raise ValueError(f"normal must be ({p_count}, 3), got {normal.shape}")
-    prior = np.asarray(normal, np.float64)
-    prior = prior / np.maximum(np.linalg.norm(prior, axis=1, keepdims=True), 1e-9)
+    singular = np.linalg.svd(y, compute_uv=False)
+    spread = float(singular[2] / singular[0]) if len(singular) >= 3 and singular[0] > 0 else 0.0
+    network = np.asarray(normal, np.float64)
+    network = network / np.maximum(np.linalg.norm(network, axis=1, keepdims=True), 1e-9)
+    prior = network
     if contour is not None and contour.any() and contour_weight > 0:
         contour = np.asarray(contour, bool)
         prior = np.where(contour[:, None], np.asarray(contour_normal, np.float64), prior)
@@ -144,15 +142,13 @@ def factorize(luminance: np.ndarray, normal: np.ndarray, albedo: np.ndarray, con
     w = (y > shadow * np.percentile(y, 95, axis=1, keepdims=True)).astype(np.float64)  # not in shadow
     b = s = None
     lit = w.all(axis=0)
-    if init == "svd" and lit.sum() >= 32 and k_count >= 3:  # exact for Lambertian pixels lit in every photo, whatever the prior
+    if init == "svd" and lit.sum() >= 32 and k_count >= 3:  # exact for Lambertian pixels lit in every photo
         u, sv, vt = np.linalg.svd(y[:, lit], full_matrices=False)
         s = u[:, :3] * np.sqrt(sv[:3])
         b = _solve3(_outer_sum(w.T, s), (w * y).T @ s)
         b, s = _resolve(b, s, prior, prior_w * (w.sum(0) >= 3.5))
     if b is None or not np.isfinite(b).all():
-        start = np.asarray(normal, np.float64)
-        start = start / np.maximum(np.linalg.norm(start, axis=1, keepdims=True), 1e-9)
-        b = np.clip(np.asarray(albedo, np.float64), 0.02, None)[:, None] * start
+        b = np.clip(np.asarray(albedo, np.float64), 0.02, None)[:, None] * network
         w = np.ones((k_count, p_count))
     solved = np.zeros(p_count, bool)  # pixels whose b came from the photos (only they may decide A)
     for _ in range(rounds):
