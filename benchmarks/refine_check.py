@@ -5,6 +5,9 @@
                                                            # true lights; light directions vs lights.txt; held-out
     python benchmarks/refine_check.py synthetic [--scenes 8]  # /work/data/test128-like split: normal MAE, BRDF RMSE
     python benchmarks/refine_check.py timing [--side 512]  # one fit at side^2, K=16: seconds, peak RSS (subprocess)
+    python benchmarks/refine_check.py samples              # a flat wood sample and a bumpy plane, rendered with
+                                                           # Mitsuba under 12 known lights: is the fit trusted?
+    ... --set light_iters=0 --set prior_target=network     # any RefineSettings field (sphere, uw, synthetic, samples)
 
 Every row runs the bundled networks first (the "before"), then :func:`matcap.refine.refine` (the "after").
 ``--threads`` sets torch's CPU threads (default: torch's own choice).
@@ -32,6 +35,30 @@ def _models():
     return load_networks(None)
 
 
+def _settings(args):
+    """RefineSettings(seed=0) with the ``--set KEY=VALUE`` overrides (values read as Python literals)."""
+    import ast
+
+    from matcap.refine import RefineSettings
+
+    over = {}
+    for item in args.set or []:
+        key, _, text = item.partition("=")
+        try:
+            over[key] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            over[key] = text
+    return RefineSettings(seed=0, **over)
+
+
+def _check(res) -> str:
+    """The fit's check (fit.json ``linear``): residual / inliers / spread / solved fraction, and kept or fitted."""
+    lin = res.report.get("linear") or {}
+    vals = [lin.get(k) for k in ("residual", "inliers", "spread", "solved_fraction")]
+    text = " / ".join("-" if v is None else f"{v:.3f}" for v in vals)
+    return f"{text}: {'kept' if res.report['kept_network_maps'] else 'fitted'}"
+
+
 def _mean_err(n, gt, m) -> float:
     from matcap.evaluation.metrics import angular_error_map
 
@@ -46,12 +73,12 @@ def _angle(a, b) -> float:
 def sphere(args) -> None:
     from matcap.capture import estimate, load_capture
     from matcap.evaluation.metrics import analytic_sphere
-    from matcap.refine import RefineSettings, refine
+    from matcap.refine import refine
 
     cap = load_capture(args.capture or SHARED / "toyps_sphere", linear=True)
     truth, scored = analytic_sphere(cap.mask)
-    print("| ToyPS sphere, K=16 (--linear, seed 0) | mean deg | median deg | re-render PSNR dB | s |")
-    print("|---|---:|---:|---:|---:|")
+    print("| ToyPS sphere, K=16 (--linear, seed 0) | mean deg | median deg | re-render PSNR dB | s | check |")
+    print("|---|---:|---:|---:|---:|---|")
     t0 = time.perf_counter()
     maps = estimate(cap.images, cap.mask, models=_models(), max_images=16, seed=0)
     t_net = time.perf_counter() - t0
@@ -59,20 +86,20 @@ def sphere(args) -> None:
 
     scored = scored & maps.mask  # both rows on the same pixels
     e0 = angular_error_map(maps.normal, truth, scored)[scored]
-    print(f"| network | {e0.mean():.2f} | {np.median(e0):.2f} | | {t_net:.1f} |", flush=True)
+    print(f"| network | {e0.mean():.2f} | {np.median(e0):.2f} | | {t_net:.1f} | |", flush=True)
     imgs = [cap.images[i] for i in maps.meta["images_used"]]
     t0 = time.perf_counter()
-    res = refine(imgs, maps, RefineSettings(seed=0))
+    res = refine(imgs, maps, _settings(args))
     e1 = angular_error_map(res.maps.normal, truth, scored & res.maps.mask)[scored & res.maps.mask]
     print(f"| network + refine | {e1.mean():.2f} | {np.median(e1):.2f} | {res.report['psnr_db_mean']:.2f} | "
-          f"{time.perf_counter() - t0:.1f} |", flush=True)
+          f"{time.perf_counter() - t0:.1f} | {_check(res)} |", flush=True)
 
 
 def uw(args) -> None:
     from matcap.capture import downscale_arrays, estimate, upscale_normals
     from matcap.evaluation.baselines import least_squares_ps
     from matcap.evaluation.datasets import load_uw_object
-    from matcap.refine import RefineSettings, refine
+    from matcap.refine import refine
     from matcap.refine.fit import fit_light_only
 
     models = _models()
@@ -81,8 +108,8 @@ def uw(args) -> None:
           f"squares with the true lights (mean deg); light directions vs lights.txt (median deg); re-render PSNR; "
           f"held-out: refine on 11, fit only the 12th photo's light with the maps frozen")
     print("| capture | network | refined | light dir median | light dir max | PSNR dB | held-out PSNR dB | "
-          "refine s |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+          "refine s | check: residual / inliers / spread / solved |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []
     for name in names:
         obj = load_uw_object(SHARED / f"uw_{name}")
@@ -97,23 +124,24 @@ def uw(args) -> None:
 
         before = score(maps.normal)
         t0 = time.perf_counter()
-        res = refine(images, maps, RefineSettings(seed=0))
+        res = refine(images, maps, _settings(args))
         secs = time.perf_counter() - t0
         after = score(res.maps.normal)
         d = [_angle(e["direction"], l) for e, l in zip(res.lights, obj.light_dirs)]
-        held = refine(images[:-1], maps, RefineSettings(seed=0))
-        ho = fit_light_only(images[-1], held.maps, RefineSettings(seed=0))["psnr_db"]
+        held = refine(images[:-1], maps, _settings(args))
+        ho = fit_light_only(images[-1], held.maps, _settings(args))["psnr_db"]
         row = (name, before, after, float(np.median(d)), float(np.max(d)), res.report["psnr_db_mean"], ho, secs)
         rows.append(row)
-        print("| {} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.1f} |".format(*row), flush=True)
+        print("| {} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.1f} | {} |".format(*row, _check(res)),
+              flush=True)
     a = np.array([r[1:] for r in rows], float)
-    print("| **mean** | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.1f} |".format(*a.mean(0)))
+    print("| **mean** | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.1f} | |".format(*a.mean(0)))
 
 
 def synthetic(args) -> None:
     from matcap.capture import estimate
     from matcap.evaluation.datasets import load_synthetic_scene
-    from matcap.refine import RefineSettings, refine
+    from matcap.refine import refine
     from matcap.results import read_result
 
     models = _models()
@@ -122,14 +150,14 @@ def synthetic(args) -> None:
     print(f"`{root}` first {len(scenes)} scenes (all images): normal MAE deg; BRDF RMSE (base colour after a "
           f"per-scene exposure fit, roughness, metallic) on the mask")
     print("| scene | group | normal before | normal after | base before | base after | rough before | "
-          "rough after | metal before | metal after |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "rough after | metal before | metal after | check |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     acc = []
     for sc in scenes:
         obj = load_synthetic_scene(sc)
         gt = read_result(sc)
         maps = estimate(obj.images, obj.mask, models=models, seed=0)
-        res = refine(obj.images, maps, RefineSettings(seed=0))
+        res = refine(obj.images, maps, _settings(args))
         m = obj.mask & maps.mask
 
         def brdf(mp):
@@ -142,8 +170,49 @@ def synthetic(args) -> None:
         row = [_mean_err(maps.normal, obj.normal_gt, m), _mean_err(res.maps.normal, obj.normal_gt, m),
                b0[0], b1[0], b0[1], b1[1], b0[2], b1[2]]
         acc.append(row)
-        print(f"| {sc.name} | {obj.group} | " + " | ".join(f"{v:.3f}" for v in row) + " |", flush=True)
-    print("| **mean** | | " + " | ".join(f"{v:.3f}" for v in np.mean(acc, 0)) + " |")
+        print(f"| {sc.name} | {obj.group} | " + " | ".join(f"{v:.3f}" for v in row) + f" | {_check(res)} |", flush=True)
+    print("| **mean** | | " + " | ".join(f"{v:.3f}" for v in np.mean(acc, 0)) + " | |")
+
+
+def samples(args) -> None:
+    """Material samples filling the frame (no occluding contour): flat wood (CC0 `wood_table_worn` colours, all
+    normals +z) and a plane with smooth random bumps, rendered under 12 directional lights in a 45-degree cone."""
+    from scipy import ndimage
+
+    from matcap.capture import estimate
+    from matcap.evaluation.metrics import angular_error_map
+    from matcap.formats import load_maps
+    from matcap.refine import refine
+    from matcap.refine import synthetic as S
+    from scenes.materialmaps import MaterialMaps
+
+    models = _models()
+    wood = load_maps(SHARED.parent / "textures" / "wood_table_worn", max_side=256).with_defaults()
+    side = 192
+    height = ndimage.gaussian_filter(np.random.default_rng(0).normal(size=(side, side)), 6)
+    gy, gx = np.gradient(height / height.std() * 2.0)
+    n = np.dstack([-gx, gy, np.ones_like(gx)])
+    yy, xx = np.mgrid[0:side, 0:side] / side
+    bumpy = MaterialMaps(normal=(n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32),
+                         mask=np.ones((side, side), bool),
+                         base_color=np.dstack([0.5 + 0.2 * np.sin(9 * xx), 0.4 + 0.1 * np.cos(7 * yy),
+                                               0.3 + 0 * xx]).astype(np.float32),
+                         roughness=np.full((side, side), 0.6, np.float32), metallic=np.zeros((side, side), np.float32))
+    lights = S.known_lights(12, seed=3, max_angle_deg=45.0)
+    print("| sample | flat normals | network | after the fit | light dir median | trusted | reason |")
+    print("|---|---:|---:|---:|---:|---|---|")
+    for name, truth in (("flat wood 256^2", wood), ("bumpy plane 192^2", bumpy)):
+        photos = S.render_capture(truth, lights, ambient=0.02, spp=16)
+        maps = estimate(photos, truth.mask, models=models, seed=0)
+        res = refine(photos, maps, _settings(args))
+        m = truth.mask
+        flat = np.zeros(m.shape + (3,), np.float32)
+        flat[..., 2] = 1.0
+        errs = [_mean_err(x, truth.normal, m) for x in (flat, maps.normal, res.maps.normal)]
+        d = np.median([_angle(e["direction"], l.direction) for e, l in zip(res.lights, lights)])
+        lin = res.report["linear"]
+        print(f"| {name} | {errs[0]:.2f} | {errs[1]:.2f} | {errs[2]:.2f} | {d:.1f} | {lin['trusted']} | "
+              f"{lin.get('reason', '')} |", flush=True)
 
 
 def timing(args) -> None:
@@ -188,7 +257,7 @@ print(json.dumps({{"seconds": time.perf_counter() - t0, "pixels": int(m.sum()), 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("what", choices=("sphere", "uw", "synthetic", "timing"))
+    ap.add_argument("what", choices=("sphere", "uw", "synthetic", "timing", "samples"))
     ap.add_argument("--capture", help="ToyPS sphere folder (sphere)")
     ap.add_argument("--objects", default="buddha,cat,gray,horse,owl,rock", help="UW objects (uw)")
     ap.add_argument("--max-side", type=int, default=256, help="photo side for the UW rows (uw; default 256)")
@@ -196,12 +265,14 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", type=int, default=8, help="first N scenes (synthetic)")
     ap.add_argument("--side", type=int, default=512, help="image side (timing)")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    ap.add_argument("--set", action="append", metavar="KEY=VALUE",
+                    help="a RefineSettings field for the fit (repeatable), e.g. light_iters=0")
     args = ap.parse_args(argv)
     if args.threads:
         import torch
 
         torch.set_num_threads(args.threads)
-    {"sphere": sphere, "uw": uw, "synthetic": synthetic, "timing": timing}[args.what](args)
+    {"sphere": sphere, "uw": uw, "synthetic": synthetic, "timing": timing, "samples": samples}[args.what](args)
     return 0
 
 
