@@ -206,3 +206,118 @@ def align(source: np.ndarray, target: np.ndarray, weight: np.ndarray | None = No
     q = np.ones(len(src)) if weight is None else np.asarray(weight, np.float64)
     g = np.linalg.solve((src * q[:, None]).T @ src + 1e-9 * np.eye(3), (src * q[:, None]).T @ tgt).T
     return g
+
+
+def _gradients(b_img: np.ndarray, ok: np.ndarray, sigma: float):
+    """Smoothed pseudo-normals and their image derivatives (x right, y up) at pixels whose 3x3 neighbourhood is
+    usable: (e, e_x, e_y) each (N, 3), and the (H, W) bool selection."""
+    import cv2
+
+    ok = np.asarray(ok, bool)
+    b = np.asarray(b_img, np.float64) * ok[..., None]
+    if sigma > 0:
+        wsum = cv2.GaussianBlur(ok.astype(np.float64), (0, 0), sigma)
+        b = np.stack([cv2.GaussianBlur(b[..., i], (0, 0), sigma) for i in range(3)], axis=-1)
+        b = b / np.maximum(wsum, 1e-9)[..., None]
+    ex = np.zeros_like(b)
+    ey = np.zeros_like(b)
+    ex[:, 1:-1] = (b[:, 2:] - b[:, :-2]) / 2.0
+    ey[1:-1] = -(b[2:] - b[:-2]) / 2.0  # rows run down, y up
+    good = cv2.erode(ok.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=0).astype(bool)
+    good[[0, -1]] = False
+    good[:, [0, -1]] = False
+    return b[good], ex[good], ey[good], good
+
+
+def integrable_ambiguity(b_img: np.ndarray, ok: np.ndarray, prior: np.ndarray, prior_weight: np.ndarray,
+                         lights: np.ndarray | None = None, equal_lights: float = 0.0, sigma: float = 1.0,
+                         rounds: int = 5) -> np.ndarray | None:
+    """The 3x3 ``A`` that makes the pseudo-normals ``A b`` integrable (the normals of one height field), its
+    remaining generalized bas-relief freedom (3 numbers and a scale) taken from the prior.
+
+    b_img: (H, W, 3) pseudo-normals (albedo times normal) up to any invertible 3x3, as a factorization gives them;
+    ok: (H, W) bool where they were solved; prior: (H, W, 3) unit normals (the network's, the contour's);
+    prior_weight: (H, W) their weights. Returns ``A`` (3, 3), to apply as ``b -> A b``, ``s -> A^-T s``; None when
+    fewer than 64 pixels have usable neighbours.
+
+    Integrability of ``n`` (``d(n_x/n_z)/dy = d(n_y/n_z)/dx``) holds for any albedo. With ``b = A e`` and the rows
+    ``a_i`` of ``A`` it reads ``(a3 x a1) . (e x e_y) - (a3 x a2) . (e x e_x) = 0`` at every pixel: linear in the six
+    numbers ``c = (a3 x a1, a3 x a2)``, whose robust null vector (Cauchy-reweighted SVD; depth edges and cast
+    shadows are its outliers) fixes ``A`` up to ``b -> (al b1 + be b3, al b2 + ga b3, de b3)``, the bas-relief
+    family (Belhumeur, Kriegman and Yuille 1999). That family is fitted to ``|b| prior`` by linear least squares,
+    then (Nelder-Mead on its three shape numbers) to the prior's unit normals plus ``equal_lights`` times the
+    variance of the log irradiances of ``lights`` (K, 3), in the frame of ``b_img``: one lamp moved around at a
+    similar distance gives every photo about the same irradiance, and a wrong bas-relief gives them different ones
+    (Hayakawa 1994); the photos themselves cannot tell the members of the family apart.
+    Measured on the UW captures at 160 px (docs/refine.md).
+    """
+    e, ex, ey, good = _gradients(b_img, ok, sigma)
+    if len(e) < 64:
+        return None
+    m = np.concatenate([np.cross(e, ey), -np.cross(e, ex)], axis=1)
+    m /= np.maximum((e * e).sum(1), 1e-12)[:, None]  # every pixel counts alike, whatever its albedo
+    w = np.ones(len(m))
+    for _ in range(rounds):
+        _, _, vt = np.linalg.svd(m * np.sqrt(w)[:, None], full_matrices=False)
+        r = m @ vt[-1]
+        scale = 1.4826 * np.median(np.abs(r)) + 1e-12
+        w = 1.0 / (1.0 + (r / (2.0 * scale)) ** 2)
+    c1, c2 = vt[-1][:3], vt[-1][3:]
+    u = np.cross(c1, c2)
+    if np.linalg.norm(u) < 1e-9:
+        return None
+    u /= np.linalg.norm(u)
+    a0 = np.stack([np.cross(c1, u), np.cross(c2, u), u])  # a3 x a1 = c1, a3 x a2 = c2
+    if abs(np.linalg.det(a0)) < 1e-12:
+        return None
+    sel = np.asarray(ok, bool)
+    b = np.asarray(b_img, np.float64)[sel] @ a0.T
+    size = np.linalg.norm(np.asarray(b_img, np.float64)[sel], axis=1)
+    t = size[:, None] * np.asarray(prior, np.float64)[sel]
+    q = np.asarray(prior_weight, np.float64)[sel]
+    zero = np.zeros(len(b))
+    rows = np.concatenate([np.stack([b[:, 0], b[:, 2], zero], 1), np.stack([b[:, 1], zero, b[:, 2]], 1)])
+    qq = np.sqrt(np.concatenate([q, q]))
+    al, be, ga = np.linalg.lstsq(rows * qq[:, None], np.concatenate([t[:, 0], t[:, 1]]) * qq, rcond=None)[0]
+    de = float((q * b[:, 2] * t[:, 2]).sum() / max((q * b[:, 2] ** 2).sum(), 1e-12))
+    g = np.array([[al, 0.0, be], [0.0, al, ga], [0.0, 0.0, de]])
+    a = g @ a0
+    if not np.isfinite(a).all() or abs(np.linalg.det(a)) < 1e-12:
+        return None
+    a = _shape_fit(a, np.asarray(b_img, np.float64)[sel], np.asarray(prior, np.float64)[sel], q, lights,
+                   equal_lights)
+    if not np.isfinite(a).all() or abs(np.linalg.det(a)) < 1e-12:
+        return None
+    return a
+
+
+def _gbr(p: np.ndarray) -> np.ndarray:
+    return np.array([[1.0, 0.0, p[0]], [0.0, 1.0, p[1]], [0.0, 0.0, np.exp(p[2])]])
+
+
+def _shape_fit(a: np.ndarray, b: np.ndarray, prior: np.ndarray, q: np.ndarray, lights: np.ndarray | None,
+               equal_lights: float) -> np.ndarray:
+    """``G a`` with the bas-relief ``G`` (shear p0, p1; depth scale exp(p2)) that best fits the unit normals of
+    ``G a b`` to ``prior`` (weights ``q``) plus ``equal_lights`` times the variance of log |lights (G a)^-1|."""
+    from scipy.optimize import minimize
+
+    b1 = b @ a.T
+    if np.median(b1[:, 2]) < 0:
+        a, b1 = -a, -b1
+    s1 = None if lights is None else np.asarray(lights, np.float64) @ np.linalg.inv(a)
+    q = q / max(q.sum(), 1e-12)
+
+    def cost(p):
+        g = _gbr(p)
+        bb = b1 @ g.T
+        nn = bb / np.maximum(np.linalg.norm(bb, axis=1, keepdims=True), 1e-12)
+        c = float((q * ((nn - prior) ** 2).sum(1)).sum())
+        if s1 is not None and equal_lights > 0:
+            c += equal_lights * float(np.var(np.log(np.maximum(np.linalg.norm(s1 @ np.linalg.inv(g), axis=1),
+                                                                  1e-12))))
+        return c
+
+    res = minimize(cost, np.zeros(3), method="Nelder-Mead", options={"xatol": 1e-5, "fatol": 1e-10,
+                                                                      "maxiter": 2000})
+    p = res.x if np.isfinite(res.x).all() and res.fun <= cost(np.zeros(3)) else np.zeros(3)
+    return _gbr(p) @ a
