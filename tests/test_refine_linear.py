@@ -141,7 +141,8 @@ def _capture(seed: int, size: int = 48):
 
 def test_refine_trusts_a_capture_it_explains_and_finds_its_lights():
     """A network-like start (too flat, plus local noise: 14 degrees off): the fit recovers lights and normals; the
-    contour is what removes the flattening (without it: lights 3.4, normals 4.3 degrees, measured)."""
+    flattening is removed by the contour (ambiguity "prior": without the contour, lights 3.4 and normals 4.3
+    degrees, measured) or by integrability and equal irradiance (the default), which need no contour."""
     n, mask, base, lights, photos = _capture(4)
     rng = np.random.default_rng(2)
     start = n * np.float32([1, 1, 1.5]) + np.where(mask[..., None], rng.normal(0, 0.2, n.shape), 0)
@@ -150,15 +151,18 @@ def test_refine_trusts_a_capture_it_explains_and_finds_its_lights():
     maps = MaterialMaps(normal=start.astype(np.float32), mask=mask, base_color=base)
     before = _angles(start[mask], n[mask]).mean()
     errors = {}
-    for weight in (1.0, 0.0):
-        res = refine(photos, maps, RefineSettings(seed=0, fine_iters=60, contour_weight=weight))
+    for ambiguity, weight in (("prior", 1.0), ("prior", 0.0), ("integrability", 0.0), ("integrability", 1.0)):
+        res = refine(photos, maps, RefineSettings(seed=0, fine_iters=60, contour_weight=weight, ambiguity=ambiguity))
         lin = res.report["linear"]
         assert lin["trusted"] and lin["residual"] < 0.05 and not res.report["kept_network_maps"]
         dirs = np.array([e["direction"] for e in res.lights])
-        errors[weight] = (float(np.median(_angles(dirs, lights))), float(_angles(res.maps.normal[mask], n[mask]).mean()))
+        errors[ambiguity, weight] = (float(np.median(_angles(dirs, lights))),
+                                     float(_angles(res.maps.normal[mask], n[mask]).mean()))
     assert before > 12.0
-    assert errors[1.0][0] < 2.0 and errors[1.0][1] < 2.5, errors
-    assert errors[0.0][0] > errors[1.0][0] + 1.0 and errors[0.0][1] > errors[1.0][1] + 1.0, errors
+    for key in (("prior", 1.0), ("integrability", 0.0), ("integrability", 1.0)):
+        assert errors[key][0] < 2.0 and errors[key][1] < 2.5, errors
+    bad = errors["prior", 0.0]
+    assert bad[0] > errors["prior", 1.0][0] + 1.0 and bad[1] > errors["prior", 1.0][1] + 1.0, errors
 
 
 def test_refine_keeps_the_network_maps_when_the_photos_are_not_explained():
@@ -225,3 +229,52 @@ def test_lights_that_turn_most_normals_away_are_not_trusted():
     lin = bad.report["linear"]
     assert not lin["trusted"] and lin["solved_fraction"] < 0.5 and "facing the camera" in lin["reason"]
     assert np.array_equal(bad.maps.normal, noise)
+
+
+def _bumps(size=96):
+    """A height field (bumps on a dome) with its unit normals (H, W, 3), x right / y up, and a full mask."""
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+    x = (xx - size / 2) / size
+    y = -(yy - size / 2) / size
+    z = 0.6 * np.exp(-(x ** 2 + y ** 2) / 0.08) + 0.05 * np.sin(9 * x) * np.cos(7 * y)
+    zy, zx = np.gradient(z)
+    zy = -zy * size  # rows run down
+    zx = zx * size
+    n = np.stack([-zx, -zy, np.ones_like(z)], axis=-1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True), np.ones(z.shape, bool)
+
+
+def test_integrability_undoes_a_general_linear_ambiguity():
+    """Pseudo-normals distorted by a random 3x3 (what a factorization leaves): integrability alone recovers them
+    up to a bas-relief, which a prior 8 degrees off in local noise then fixes."""
+    from matcap.refine.linear import integrable_ambiguity
+
+    n, mask = _bumps()
+    rng = np.random.default_rng(3)
+    albedo = 0.4 + 0.2 * rng.random(mask.shape)
+    a_true = np.eye(3) + rng.normal(0, 0.4, (3, 3))
+    b_seen = (n * albedo[..., None]) @ np.linalg.inv(a_true).T
+    prior = n + rng.normal(0, 0.1, n.shape)
+    prior /= np.linalg.norm(prior, axis=-1, keepdims=True)
+    assert _angles(prior, n).mean() > 5.0
+    a = integrable_ambiguity(b_seen, mask, prior, mask.astype(float), sigma=0.0)
+    assert a is not None and a.shape == (3, 3)
+    assert np.median(_angles(b_seen @ a.T, n)) < 1.0
+
+
+def test_equal_irradiance_picks_the_bas_relief_a_flat_prior_misses():
+    """The network's normals are too flat (a global bas-relief error, which integrability cannot see): with one
+    lamp at a constant distance, equal irradiance across the photos fixes the depth scale."""
+    from matcap.refine.linear import integrable_ambiguity
+
+    n, mask = _bumps()
+    lights = cone_lights(12, 40.0, seed=4)  # unit: equal irradiance
+    flat = n * np.array([1.0, 1.0, 2.5])  # a flattened prior: a bas-relief of the truth
+    flat /= np.linalg.norm(flat, axis=-1, keepdims=True)
+    errs = {}
+    for w in (0.0, 30.0, 1000.0):
+        a = integrable_ambiguity(n, mask, flat, mask.astype(float), lights=lights, equal_lights=w, sigma=0.0)
+        errs[w] = float(np.mean(_angles(n @ a.T, n))), float(np.median(_angles(lights @ np.linalg.inv(a), lights)))
+    assert errs[0.0][0] > 15.0  # the prior's flattening stays (19 degrees)
+    assert errs[30.0][0] < 0.5 * errs[0.0][0]  # a trade-off against the prior: the default weight goes most of the way
+    assert errs[1000.0][0] < 0.5 and errs[1000.0][1] < 0.5

@@ -74,7 +74,7 @@ class RefineSettings:
     # photos' normals must form one surface; the prior fixes only the bas-relief remainder, 4 numbers), "prior"
     # (all 9 numbers from the network's and the contour's normals). UW at 160 px, median light-direction error:
     # 7.1 vs 12.7 degrees (docs/refine.md)
-    equal_lights: float = 10.0  # with "integrability": weight of "every photo got about the same irradiance" (one
+    equal_lights: float = 30.0  # with "integrability": weight of "every photo got about the same irradiance" (one
     # lamp moved at a similar distance) against the prior in choosing the bas-relief; 0 ignores it
     trust_residual: float = 0.05  # the factorization must explain the photos to this relative RMS ...
     trust_inliers: float = 0.85  # ... with this share of inlier observations; otherwise the photos are not
