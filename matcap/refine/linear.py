@@ -7,8 +7,10 @@ stereo is exactly the problem of choosing ``A``. Measured on the UW captures (be
 normals this factorization gives are within 3-8 degrees of least squares with the true lights *up to one such A*,
 while the network's normals are 6-31 degrees off, mostly in local detail (the best A brings them only to 5-27).
 
-So the photos decide everything but ``A``, and ``A`` alone (nine numbers for the whole capture) is taken from
-prior knowledge, by linear least squares of ``A b_p`` against ``|b_p| n_p``:
+So the photos decide everything but ``A``. :func:`factorize` takes ``A`` (nine numbers for the whole capture) from
+prior knowledge, by linear least squares of ``A b_p`` against ``|b_p| n_p``; :func:`integrable_ambiguity` then
+takes six of the nine from the photos again (their normals must form one surface), leaving the prior only the
+three numbers of a bas-relief (the refinement's default, ``RefineSettings.ambiguity``). The priors:
 
 - the network's normals ``n_p`` on the object, and
 - the occluding contour: on the mask's edge, where the network agrees the surface turns away (``n_z`` below
