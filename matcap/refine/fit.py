@@ -72,8 +72,8 @@ class RefineSettings:
     linear_init: str = "svd"  # start of the factorization: "svd" (the photos alone) or "network"
     ambiguity: str = "integrability"  # how the factorization's 3x3 ambiguity is fixed: "integrability" (the
     # photos' normals must form one surface; the prior fixes only the bas-relief remainder, 4 numbers), "prior"
-    # (all 9 numbers from the network's and the contour's normals). UW at 160 px, median light-direction error:
-    # 7.1 vs 12.7 degrees (docs/refine.md)
+    # (all 9 numbers from the network's and the contour's normals). UW at 160 px through the whole fit: normals
+    # 11.00 vs 15.31 degrees, light-direction medians 8.16 vs 11.48 (docs/refine.md)
     equal_lights: float = 30.0  # with "integrability": weight of "every photo got about the same irradiance" (one
     # lamp moved at a similar distance) against the prior in choosing the bas-relief; 0 ignores it
     trust_residual: float = 0.05  # the factorization must explain the photos to this relative RMS ...
@@ -256,8 +256,14 @@ def _shade(lights, pos, n, b, r, m):
     return shade(n, b, r, m, wo, irr, lights.sh)
 
 
+def _luminance(obs, rows, cols) -> np.ndarray:
+    """(K, P) luminance of the photos ``obs`` (K, H, W, 3) at pixels ``rows``, ``cols``."""
+    return np.tensordot(obs[:, rows, cols], np.asarray(LUMA, np.float32), axes=([2], [0]))
+
+
 def _linear_lights(obs, mask, arrays, s: RefineSettings, rng):
-    """The factorization (:class:`matcap.refine.linear.LinearFit`) of the light-fit copy's photos."""
+    """The factorization (:class:`matcap.refine.linear.LinearFit`) of the light-fit copy's photos; its ambiguity
+    re-fixed by integrability only where the check can still trust it (kept captures need no lights from it)."""
     from matcap.refine.linear import contour_normals, factorize
 
     sel, c_normal = contour_normals(mask, arrays["normal"], gate=s.contour_gate, nz=s.contour_nz)
@@ -268,11 +274,11 @@ def _linear_lights(obs, mask, arrays, s: RefineSettings, rng):
         inner = np.sort(rng.choice(inner, size=s.linear_pixels, replace=False))
     idx = np.sort(np.concatenate([inner, np.flatnonzero(on_contour)]))
     r, c = rows[idx], cols[idx]
-    lum = np.tensordot(obs[:, r, c], np.asarray(LUMA, np.float32), axes=([2], [0]))
+    lum = _luminance(obs, r, c)
     alb = arrays["base"][r, c] @ np.asarray(LUMA, np.float32)
     fit = factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.contour_weight,
                     init=s.linear_init)
-    if s.ambiguity == "integrability":
+    if s.ambiguity == "integrability" and _distrust(len(obs), fit, None, s) is None:
         fit = _integrable(fit, obs, mask, arrays["normal"], sel, c_normal, s.contour_weight, s.equal_lights)
     return fit
 
@@ -285,7 +291,7 @@ def _integrable(fit, obs, mask, network, contour, c_normal, contour_weight, equa
     from matcap.refine.linear import integrable_ambiguity, solve_normals
 
     rows, cols = np.nonzero(mask)
-    lum = np.tensordot(obs[:, rows, cols], np.asarray(LUMA, np.float32), axes=([2], [0]))
+    lum = _luminance(obs, rows, cols)
     s_lum = fit.directions * fit.irradiance[:, None]
     n, alb, solved = solve_normals(lum, s_lum, network[rows, cols])
     b_img = np.zeros(mask.shape + (3,))
@@ -298,8 +304,6 @@ def _integrable(fit, obs, mask, network, contour, c_normal, contour_weight, equa
     a = integrable_ambiguity(b_img, ok, prior, np.where(on, share, 1.0) * mask, s_lum, equal_lights)
     if a is None:
         return fit
-    if np.median((b_img[ok] @ a.T)[:, 2]) < 0:  # the surface faces the camera
-        a = -a
     s_new = s_lum @ np.linalg.inv(a)
     b = (fit.normal * fit.albedo[:, None]) @ a.T
     size = np.linalg.norm(b, axis=1)
@@ -336,7 +340,7 @@ def _photo_normals(obs, mask, network, s_lum, s: RefineSettings, report=None):
     from matcap.refine.linear import align, solve_normals
 
     rows, cols = np.nonzero(mask)
-    lum = np.tensordot(obs[:, rows, cols], np.asarray(LUMA, np.float32), axes=([2], [0]))
+    lum = _luminance(obs, rows, cols)
     net = network[rows, cols]
     n, _, solved = solve_normals(lum, s_lum, net)
     start = network.copy()
