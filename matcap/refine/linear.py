@@ -212,7 +212,7 @@ def align(source: np.ndarray, target: np.ndarray, weight: np.ndarray | None = No
 
 def _gradients(b_img: np.ndarray, ok: np.ndarray, sigma: float):
     """Smoothed pseudo-normals and their image derivatives (x right, y up) at pixels whose 3x3 neighbourhood is
-    usable: (e, e_x, e_y) each (N, 3), and the (H, W) bool selection."""
+    usable: (e, e_x, e_y) each (N, 3)."""
     import cv2
 
     ok = np.asarray(ok, bool)
@@ -228,7 +228,7 @@ def _gradients(b_img: np.ndarray, ok: np.ndarray, sigma: float):
     good = cv2.erode(ok.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=0).astype(bool)
     good[[0, -1]] = False
     good[:, [0, -1]] = False
-    return b[good], ex[good], ey[good], good
+    return b[good], ex[good], ey[good]
 
 
 def integrable_ambiguity(b_img: np.ndarray, ok: np.ndarray, prior: np.ndarray, prior_weight: np.ndarray,
@@ -239,8 +239,9 @@ def integrable_ambiguity(b_img: np.ndarray, ok: np.ndarray, prior: np.ndarray, p
 
     b_img: (H, W, 3) pseudo-normals (albedo times normal) up to any invertible 3x3, as a factorization gives them;
     ok: (H, W) bool where they were solved; prior: (H, W, 3) unit normals (the network's, the contour's);
-    prior_weight: (H, W) their weights. Returns ``A`` (3, 3), to apply as ``b -> A b``, ``s -> A^-T s``; None when
-    fewer than 64 pixels have usable neighbours.
+    prior_weight: (H, W) their weights. Returns ``A`` (3, 3), to apply as ``b -> A b``, ``s -> A^-T s``, with the
+    surface facing the camera (median ``(A b)_z > 0``); None when fewer than 64 pixels have usable neighbours or
+    the system is degenerate.
 
     Integrability of ``n`` (``d(n_x/n_z)/dy = d(n_y/n_z)/dx``) holds for any albedo. With ``b = A e`` and the rows
     ``a_i`` of ``A`` it reads ``(a3 x a1) . (e x e_y) - (a3 x a2) . (e x e_x) = 0`` at every pixel: linear in the six
@@ -253,7 +254,7 @@ def integrable_ambiguity(b_img: np.ndarray, ok: np.ndarray, prior: np.ndarray, p
     (Hayakawa 1994); the photos themselves cannot tell the members of the family apart.
     Measured on the UW captures at 160 px (docs/refine.md).
     """
-    e, ex, ey, good = _gradients(b_img, ok, sigma)
+    e, ex, ey = _gradients(b_img, ok, sigma)
     if len(e) < 64:
         return None
     m = np.concatenate([np.cross(e, ey), -np.cross(e, ex)], axis=1)
@@ -273,9 +274,10 @@ def integrable_ambiguity(b_img: np.ndarray, ok: np.ndarray, prior: np.ndarray, p
     if abs(np.linalg.det(a0)) < 1e-12:
         return None
     sel = np.asarray(ok, bool)
-    b = np.asarray(b_img, np.float64)[sel] @ a0.T
-    size = np.linalg.norm(np.asarray(b_img, np.float64)[sel], axis=1)
-    t = size[:, None] * np.asarray(prior, np.float64)[sel]
+    seen = np.asarray(b_img, np.float64)[sel]
+    b = seen @ a0.T
+    pr = np.asarray(prior, np.float64)[sel]
+    t = np.linalg.norm(seen, axis=1)[:, None] * pr
     q = np.asarray(prior_weight, np.float64)[sel]
     zero = np.zeros(len(b))
     rows = np.concatenate([np.stack([b[:, 0], b[:, 2], zero], 1), np.stack([b[:, 1], zero, b[:, 2]], 1)])
@@ -286,11 +288,7 @@ def integrable_ambiguity(b_img: np.ndarray, ok: np.ndarray, prior: np.ndarray, p
     a = g @ a0
     if not np.isfinite(a).all() or abs(np.linalg.det(a)) < 1e-12:
         return None
-    a = _shape_fit(a, np.asarray(b_img, np.float64)[sel], np.asarray(prior, np.float64)[sel], q, lights,
-                   equal_lights)
-    if not np.isfinite(a).all() or abs(np.linalg.det(a)) < 1e-12:
-        return None
-    return a
+    return _shape_fit(a, seen, pr, q, lights, equal_lights)  # a finite bas-relief of a: finite, invertible
 
 
 def _gbr(p: np.ndarray) -> np.ndarray:
