@@ -29,6 +29,28 @@ def sphere_maps(size: int = 64) -> MaterialMaps:
                         metallic=zero(metal))
 
 
+def textured_dome(size: int, detail: MaterialMaps, strength: float = 2.0, roughness: float = 0.4) -> MaterialMaps:
+    """A sphere seen up to its occluding contour, carrying the tangent-space detail and the base colour of a
+    texture set ``detail`` (e.g. a CC0 wood set through :func:`matcap.formats.load_maps`, at least ``size``
+    pixels square): its normal map's x, y scaled by ``strength``, constant ``roughness``, metallic 0."""
+    if min(detail.shape) < size:
+        raise ValueError(f"the texture set is {detail.shape}, smaller than the dome's {size} px")
+    normal, mask = sphere_normals(size, radius_frac=0.47, max_angle_deg=89.0)
+    d = detail.with_defaults()
+    t = np.asarray(d.normal[:size, :size], np.float32).copy()
+    t[..., :2] *= strength
+    t /= np.linalg.norm(t, axis=-1, keepdims=True).clip(1e-6)
+    tangent = np.float32([1, 0, 0]) - (normal @ np.float32([1, 0, 0]))[..., None] * normal
+    tangent /= np.linalg.norm(tangent, axis=-1, keepdims=True).clip(1e-6)
+    bitangent = np.cross(normal, tangent)
+    n = t[..., :1] * tangent + t[..., 1:2] * bitangent + t[..., 2:3] * normal
+    n /= np.linalg.norm(n, axis=-1, keepdims=True).clip(1e-6)
+    zero = lambda a: np.where(mask if a.ndim == 2 else mask[..., None], a, 0).astype(np.float32)  # noqa: E731
+    return MaterialMaps(normal=zero(n), mask=mask, base_color=zero(np.asarray(d.base_color[:size, :size])),
+                        roughness=zero(np.full((size, size), roughness, np.float32)),
+                        metallic=zero(np.zeros((size, size), np.float32)))
+
+
 def known_lights(count: int = 12, seed: int = 3, max_angle_deg: float = 55.0, kind: str = "directional",
                  distance: float = 3.0):
     """``count`` DirectionalLights (or PointLights at ``distance``) in a cone around the view, RGB-tinted."""
