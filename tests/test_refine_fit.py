@@ -115,12 +115,12 @@ def test_bad_input_is_one_line(case, needle):
 
 
 def _detail(size: int, relief: float):
-    from scenes.materialmaps import MaterialMaps
-
-    rng = np.random.default_rng(0)
+    """A texture set (size^2) whose normal map is smooth random relief (``relief`` 0: flat), grey base colour."""
     from scipy import ndimage
 
-    h = ndimage.gaussian_filter(rng.normal(size=(size, size)), 2.0)
+    from scenes.materialmaps import MaterialMaps
+
+    h = ndimage.gaussian_filter(np.random.default_rng(0).normal(size=(size, size)), 2.0)
     gy, gx = np.gradient(h / h.std() * relief)
     n = np.dstack([-gx, gy, np.ones_like(gx)])
     n /= np.linalg.norm(n, axis=-1, keepdims=True)

@@ -11,6 +11,12 @@ from matcap.evaluation.toy import cone_lights, sphere_normals
 from scenes.materialmaps import MaterialMaps
 
 
+def _on_mask(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``a`` ((H, W) or (H, W, C)) as float32, zero off ``mask``."""
+    a = np.asarray(a)
+    return np.where(mask if a.ndim == 2 else mask[..., None], a, 0).astype(np.float32)
+
+
 def sphere_maps(size: int = 64) -> MaterialMaps:
     """A sphere with a bumpy band (so the normals are not all analytic), two materials side by side: left half
     glossy dielectric (roughness 0.3), right half rough (0.7); base colour varies smoothly; metallic 0."""
@@ -24,9 +30,8 @@ def sphere_maps(size: int = 64) -> MaterialMaps:
     base = np.stack([0.55 + 0.3 * xx, 0.45 + 0.2 * yy, 0.35 + 0.1 * (1 - xx)], -1).astype(np.float32)
     rough = np.where(xx < 0.5, 0.3, 0.7).astype(np.float32)
     metal = np.zeros((size, size), np.float32)
-    zero = lambda a: np.where(mask if a.ndim == 2 else mask[..., None], a, 0).astype(np.float32)  # noqa: E731
-    return MaterialMaps(normal=n.astype(np.float32), mask=mask, base_color=zero(base), roughness=zero(rough),
-                        metallic=zero(metal))
+    return MaterialMaps(normal=n.astype(np.float32), mask=mask, base_color=_on_mask(base, mask),
+                        roughness=_on_mask(rough, mask), metallic=_on_mask(metal, mask))
 
 
 def textured_dome(size: int, detail: MaterialMaps, strength: float = 2.0, roughness: float = 0.4) -> MaterialMaps:
@@ -45,10 +50,9 @@ def textured_dome(size: int, detail: MaterialMaps, strength: float = 2.0, roughn
     bitangent = np.cross(normal, tangent)
     n = t[..., :1] * tangent + t[..., 1:2] * bitangent + t[..., 2:3] * normal
     n /= np.linalg.norm(n, axis=-1, keepdims=True).clip(1e-6)
-    zero = lambda a: np.where(mask if a.ndim == 2 else mask[..., None], a, 0).astype(np.float32)  # noqa: E731
-    return MaterialMaps(normal=zero(n), mask=mask, base_color=zero(np.asarray(d.base_color[:size, :size])),
-                        roughness=zero(np.full((size, size), roughness, np.float32)),
-                        metallic=zero(np.zeros((size, size), np.float32)))
+    return MaterialMaps(normal=_on_mask(n, mask), mask=mask, base_color=_on_mask(d.base_color[:size, :size], mask),
+                        roughness=_on_mask(np.full((size, size), roughness), mask),
+                        metallic=_on_mask(np.zeros((size, size)), mask))
 
 
 def known_lights(count: int = 12, seed: int = 3, max_angle_deg: float = 55.0, kind: str = "directional",
