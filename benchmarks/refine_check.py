@@ -54,10 +54,17 @@ def _settings(args):
 
 
 def _check(res) -> str:
-    """The fit's check (fit.json ``linear``): residual / inliers / spread / solved fraction, and kept or fitted."""
+    """The fit's check (fit.json ``linear``): residual / inliers / spread / solved fraction, then the Principled
+    fit's ambient share where the Lambertian part failed, and kept or fitted."""
     lin = res.report.get("linear") or {}
     vals = [lin.get(k) for k in ("residual", "inliers", "spread", "solved_fraction")]
     text = " / ".join("-" if v is None else f"{v:.3f}" for v in vals)
+    second = lin.get("principled_fit")
+    if lin.get("check") == "principled":
+        text += f", Principled: ambient {res.report['ambient_share']:.3f}"
+    elif second is not None:
+        share, solved = second["ambient_share"], second["solved_fraction"]
+        text += (f", Principled: solved {solved:.3f}" if share is None else f", Principled: ambient {share:.3f}")
     return f"{text}: {'kept' if res.report['kept_network_maps'] else 'fitted'}"
 
 
@@ -110,7 +117,7 @@ def uw(args) -> None:
           f"squares with the true lights (mean deg); light directions vs lights.txt (median deg); re-render PSNR; "
           f"held-out: refine on 11, fit only the 12th photo's light with the maps frozen")
     print("| capture | network | refined | light dir median | light dir max | PSNR dB | held-out PSNR dB | "
-          "refine s | check: residual / inliers / spread / solved |")
+          "refine s | check: residual / inliers / spread / solved (then the Principled pass) |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []
     for name in names:
@@ -220,7 +227,7 @@ def samples(args) -> None:
 def dome(args) -> None:
     """The capture the refinement is made for: one object, one light moved around it in a dark room. A sphere up
     to its contour carrying the detail and colours of the CC0 `wood_table_worn` set, glossy (roughness 0.4) and
-    matte (0.9), rendered with Mitsuba under 16 known directional lights in a 45-degree cone plus a faint ambient;
+    matte (0.9) (``--roughness``), rendered with Mitsuba under 16 known directional lights in a 45-degree cone plus a faint ambient;
     the fit as the check decides, and trusted whatever the check's residual / inliers say (``trust_residual=inf``,
     ``trust_inliers=0``)."""
     import dataclasses
@@ -235,9 +242,9 @@ def dome(args) -> None:
     lights = S.known_lights(16, seed=3, max_angle_deg=45.0)
     print(f"Textured dome, {args.side}^2, 16 photos: normals vs the truth (mean deg); light directions (median deg)")
     print("| roughness | network | fit (check decides) | light dir | kept? | fit, residual check off | light dir | "
-          "check: residual / inliers / spread / solved |")
+          "check: residual / inliers / spread / solved (then the Principled pass) |")
     print("|---:|---:|---:|---:|---|---:|---:|---|")
-    for rough in (0.4, 0.9):
+    for rough in args.roughness:
         truth = S.textured_dome(args.side, wood, roughness=rough)
         photos = S.render_capture(truth, lights, ambient=0.02, spp=32)
         maps = estimate(photos, truth.mask, models=models, seed=0)
@@ -302,6 +309,8 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default="/work/data/test128", help="synthetic split (synthetic)")
     ap.add_argument("--scenes", type=int, default=8, help="first N scenes (synthetic)")
     ap.add_argument("--side", type=int, default=None, help="image side (timing; dome: default 256)")
+    ap.add_argument("--roughness", type=lambda v: [float(x) for x in v.split(",")], default=[0.4, 0.9],
+                    help="dome roughness values, comma-separated (dome; default 0.4,0.9)")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="a RefineSettings field for the fit (repeatable), e.g. light_iters=0")

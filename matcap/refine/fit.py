@@ -86,6 +86,11 @@ class RefineSettings:
     # normals resolved wrongly, 65 degrees off: 0.07-0.25)
     trust_spread: float = 0.02  # ... and the photos must not be (nearly) rank 1, as a flat sample's are (its one
     # normal cannot tell the lights apart: a flat wood sample 0.003, UW captures 0.07-0.09)
+    trust_ambient: float = 0.05  # where only the residual / inliers part of the check fails (a glossy object: its
+    # highlights are no Lambertian's), the fit runs anyway and is kept if its fixed ambient gives at most this share
+    # of the object's irradiance: one light per photo, as in a dark room, which the Principled fit explains.
+    # Environment-lit photos need far more (synthetic split: 0.09-0.31 where the fit ran, and it made them worse;
+    # glossy domes and the scenes it improved 0.004-0.006). 0: never run it (docs/refine.md, session 13)
     seed: int = 0
     device: str = "cpu"
 
@@ -261,7 +266,7 @@ def _luminance(obs, rows, cols) -> np.ndarray:
     return np.tensordot(obs[:, rows, cols], np.asarray(LUMA, np.float32), axes=([2], [0]))
 
 
-def _linear_lights(obs, mask, arrays, s: RefineSettings, rng):
+def _linear_lights(obs, mask, arrays, s: RefineSettings, rng, lambertian: bool = True):
     """The factorization (:class:`matcap.refine.linear.LinearFit`) of the light-fit copy's photos; its ambiguity
     re-fixed by integrability only where the check can still trust it (kept captures need no lights from it)."""
     from matcap.refine.linear import contour_normals, factorize
@@ -278,7 +283,7 @@ def _linear_lights(obs, mask, arrays, s: RefineSettings, rng):
     alb = arrays["base"][r, c] @ np.asarray(LUMA, np.float32)
     fit = factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.contour_weight,
                     init=s.linear_init)
-    if s.ambiguity == "integrability" and _distrust(len(obs), fit, None, s) is None:
+    if s.ambiguity == "integrability" and _distrust(len(obs), fit, None, s, lambertian) is None:
         fit = _integrable(fit, obs, mask, arrays["normal"], sel, c_normal, s.contour_weight, s.equal_lights)
     return fit
 
@@ -312,15 +317,17 @@ def _integrable(fit, obs, mask, network, contour, c_normal, contour_weight, equa
                                normal=b / np.maximum(size, 1e-12)[:, None], albedo=size)
 
 
-def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSettings) -> str | None:
+def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSettings,
+              lambertian: bool = True) -> str | None:
     """Why the factorization's lights may not move the maps (one line), or None: the check of docs/refine.md
-    (``solved_fraction`` None: the photos' normals are not solved yet, that part of the check waits)."""
+    (``solved_fraction`` None: the photos' normals are not solved yet, that part of the check waits;
+    ``lambertian`` False: the residual / inliers part is left to the Principled fit's ambient share)."""
     if k_count < 4:
         return f"{k_count} photos: per-pixel normals need 4 or more"
     if linear.spread < s.trust_spread:
         return (f"the surface is too flat for the photos to tell where the lights were (third singular value "
                 f"{linear.spread:.3f} of the first; trusted from {s.trust_spread:g})")
-    if linear.residual > s.trust_residual or linear.inliers < s.trust_inliers:
+    if lambertian and (linear.residual > s.trust_residual or linear.inliers < s.trust_inliers):
         return (f"distant lights on a diffuse surface do not explain the photos (residual {linear.residual:.0%}, "
                 f"inliers {linear.inliers:.0%}; trusted from {s.trust_residual:.0%} / {s.trust_inliers:.0%})")
     if solved_fraction is not None and solved_fraction < s.trust_solved:  # implausible lights: normals face away
@@ -442,19 +449,44 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
 
     images: K (H, W, 3) float32 linear RGB photos (at the maps' size); maps: the networks' :class:`MaterialMaps`
     (missing BRDF maps start from ``with_defaults``). Deterministic for ``settings.seed`` on one device.
+
+    Where the photos fail only the Lambertian part of the check (residual / inliers: a glossy object, or light
+    that is not one lamp per photo), the fit runs a second time without it and is kept if its fixed ambient gives
+    at most ``trust_ambient`` of the object's irradiance (:func:`ambient_share`); otherwise the first pass's kept
+    maps are returned, with both reasons.
     """
     import torch
 
     was = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
     torch.use_deterministic_algorithms(True, warn_only=True)  # bit-for-bit repeatable for a seed (measured)
     try:
-        return _refine(torch, images, maps, settings, progress)
+        s = settings or RefineSettings()
+        first = _refine(torch, images, maps, s, progress)
+        lin = first.report.get("linear") or {}
+        if not lin.pop("lambertian_only", False) or s.trust_ambient <= 0:
+            return first
+        # the Lambertian part of the check alone failed: the Principled fit may still explain the photos (gloss)
+        second = _refine(torch, images, maps, s, progress, lambertian=False)
+        if isinstance(second, dict):  # its check failed before any fit
+            lin2, share = second, None
+        else:
+            lin2, share = second.report["linear"], second.report["ambient_share"]
+        if share is not None and share <= s.trust_ambient:
+            second.report["linear"] = {**lin2, "check": "principled", "reason_lambertian": lin["reason"]}
+            return second
+        why = lin2.get("reason") or (f"the fit needed a fixed ambient of {share:.0%} of the irradiance (trusted up "
+                                     f"to {s.trust_ambient:.0%}): not one light per photo")
+        first.report["linear"] = {**lin, "reason": f"{lin['reason']}; and the Principled fit: {why}",
+                                  "principled_fit": {"ambient_share": share,
+                                                     "solved_fraction": lin2.get("solved_fraction")}}
+        return first
     finally:
         torch.use_deterministic_algorithms(was[0], warn_only=was[1])
 
 
-def _refine(torch, images, maps, settings, progress) -> RefineResult:
-    s = settings or RefineSettings()
+def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool = True) -> RefineResult | dict:
+    """One fit; ``lambertian`` False leaves the residual / inliers part of the check out (:func:`refine`) and
+    returns only the check's report (a dict) where the rest of it fails."""
     if s.light_model not in ("directional", "point"):
         raise MatcapError(f"light model must be 'directional' or 'point', got {s.light_model!r}")
     t_start = time.perf_counter()
@@ -503,13 +535,17 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
     if s.light_init == "linear" and s.light_model == "directional":  # the factorization: distant lights
         linear_report = {}
         if k_count >= 4:
-            linear = _linear_lights(obs_l, mask_l, arr_l, s, rng)
-        if _distrust(k_count, linear, None, s) is None:  # start (and prior) normals from the photos' lights
+            linear = _linear_lights(obs_l, mask_l, arr_l, s, rng, lambertian)
+        if _distrust(k_count, linear, None, s, lambertian) is None:  # start (and prior) normals from the photos' lights
             s_lum = linear.directions * linear.irradiance[:, None]
             start, prior, linear_report = _photo_normals(obs, mask, arrays["normal"], s_lum, s)
-        reason = _distrust(k_count, linear, linear_report.get("solved_fraction"), s)
+        reason = _distrust(k_count, linear, linear_report.get("solved_fraction"), s, lambertian)
         linear_report = {**linear_report, "trusted": reason is None, **({"reason": reason} if reason else {})}
+        if reason is not None and lambertian and _distrust(k_count, linear, None, s, False) is None:
+            linear_report["lambertian_only"] = True  # refine() tries the Principled fit's own check
     trusted = linear_report is None or linear_report["trusted"]
+    if not lambertian and not trusted:  # the Principled fit was not even started: refine() keeps the first pass
+        return linear_report
     if not trusted:
         start = None
     if linear is not None and trusted:
@@ -618,6 +654,8 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
         psnr.append(10.0 * math.log10(peak ** 2 / max(mse, 1e-12)) if peak > 0 else float("nan"))
     prediction = np.zeros((k_count, h, w, 3), np.float32)
     prediction[:, full.rows, full.cols] = pred / scale
+    with torch.no_grad():
+        share = ambient_share(torch, lights, full.pos, px_full.normal())
     timings["outputs_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
 
@@ -647,10 +685,26 @@ def _refine(torch, images, maps, settings, progress) -> RefineResult:
             "contour_pixels": linear.contour_pixels, "residual": round(linear.residual, 4),
             "inliers": round(linear.inliers, 4), "spread": round(linear.spread, 5), "ambiguity": s.ambiguity})},
         "kept_network_maps": not trusted,
+        "ambient_share": round(share, 4),
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
     return RefineResult(refined, light_entries, report, residual, variation, warning, prediction)
+
+
+def ambient_share(torch, lights, pos, normal) -> float:
+    """Share of the object's irradiance (luminance, mean over pixels and photos) that the fixed SH ambient gives
+    against the photos' own lights: near 0 for one lamp per photo in a dark room, large for environment light.
+
+    lights: :class:`matcap.refine.model.LightParams`; pos (N, 3) plane positions; normal (N, 3) unit normals."""
+    from matcap.refine.model import sh_irradiance
+
+    luma = torch.tensor(LUMA, dtype=normal.dtype, device=normal.device)
+    amb = (sh_irradiance(normal, lights.sh) * luma).sum(-1).clamp(min=0.0)  # (K|1, N)
+    wo, irr = lights.incident(pos)
+    direct = (normal[None] * wo).sum(-1).clamp(min=0.0) * (irr * luma).sum(-1)  # (K, N)
+    a, d = float(amb.mean()), float(direct.mean())
+    return a / max(a + d, 1e-12)
 
 
 def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
