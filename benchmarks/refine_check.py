@@ -240,24 +240,48 @@ def dome(args) -> None:
     models = _models()
     wood = load_maps(SHARED.parent / "textures" / "wood_table_worn", max_side=args.side)
     lights = S.known_lights(16, seed=3, max_angle_deg=45.0)
-    print(f"Textured dome, {args.side}^2, 16 photos: normals vs the truth (mean deg); light directions (median deg)")
+    print(f"Textured dome, {args.side}^2, 16 photos, light {args.dome_light}: normals vs the truth (mean deg); "
+          "light directions (median deg)")
     print("| roughness | network | fit (check decides) | light dir | kept? | fit, residual check off | light dir | "
           "check: residual / inliers / spread / solved (then the Principled pass) |")
     print("|---:|---:|---:|---:|---|---:|---:|---|")
     for rough in args.roughness:
         truth = S.textured_dome(args.side, wood, roughness=rough)
-        photos = S.render_capture(truth, lights, ambient=0.02, spp=32)
+        if args.dome_light == "dir":
+            photos = S.render_capture(truth, lights, ambient=0.02, spp=32)
+        else:
+            photos = _env_photos(truth, lights if args.dome_light == "dir+env" else None)
         maps = estimate(photos, truth.mask, models=models, seed=0)
         s = _settings(args)
         checked = refine(photos, maps, s)
         forced = refine(photos, maps, dataclasses.replace(s, trust_residual=float("inf"), trust_inliers=0.0))
         cells = [f"{_mean_err(maps.normal, truth.normal, truth.mask):.2f}"]
         for res in (checked, forced):
-            d = np.median([_angle(e["direction"], l.direction) for e, l in zip(res.lights, lights)])
-            cells += [f"{_mean_err(res.maps.normal, truth.normal, truth.mask):.2f}", f"{d:.1f}"]
+            d = "-" if args.dome_light == "env" else (  # the directional lights (none under the map alone)
+                f"{np.median([_angle(e['direction'], l.direction) for e, l in zip(res.lights, lights)]):.1f}")
+            cells += [f"{_mean_err(res.maps.normal, truth.normal, truth.mask):.2f}", d]
             if res is checked:
                 cells.append("kept" if res.report["kept_network_maps"] else "fitted")
         print(f"| {rough} | {' | '.join(cells)} | {_check(checked)} |", flush=True)
+
+
+def _env_photos(truth, lights=None):
+    """16 photos of ``truth`` under Blender's studio, interior, courtyard and forest maps in turn, turned by 22.5
+    degrees from photo to photo; with ``lights``, each photo's directional light plus the map at 0.3."""
+    from matcap.refine import synthetic as S
+    from matcap.relight import load_envmap
+    from renderers.relight import render
+    from scenes.lights import EnvironmentLight
+
+    names = ["blender_studio", "blender_interior", "blender_courtyard", "blender_forest"]
+    env = {n: load_envmap(SHARED.parent / "envmaps" / f"{n}.exr") for n in names}
+    full = S.extend_maps(truth)
+    photos = []
+    for i in range(16):
+        e = EnvironmentLight(source=names[i % 4], rotation_deg=22.5 * i, scale=1.0 if lights is None else 0.3)
+        img = render(full, [e] if lights is None else [lights[i], e], env, spp=32, seed=i)
+        photos.append(np.where(truth.mask[..., None], img, 0.0).astype(np.float32))
+    return photos
 
 
 def timing(args) -> None:
@@ -311,6 +335,9 @@ def main(argv=None) -> int:
     ap.add_argument("--side", type=int, default=None, help="image side (timing; dome: default 256)")
     ap.add_argument("--roughness", type=lambda v: [float(x) for x in v.split(",")], default=[0.4, 0.9],
                     help="dome roughness values, comma-separated (dome; default 0.4,0.9)")
+    ap.add_argument("--dome-light", choices=("dir", "env", "dir+env"), default="dir",
+                    help="dome: 16 directional lights plus a faint ambient (default), a turning environment map "
+                         "alone, or both (the map at 0.3)")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="a RefineSettings field for the fit (repeatable), e.g. light_iters=0")
