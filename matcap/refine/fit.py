@@ -474,9 +474,9 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
         if share is not None and share <= s.trust_ambient:
             second.report["linear"] = {**lin2, "check": "principled", "reason_lambertian": lin["reason"]}
             return second
-        why = lin2.get("reason") or (f"the fit needed a fixed ambient of {share:.0%} of the irradiance (trusted up "
-                                     f"to {s.trust_ambient:.0%}): not one light per photo")
-        first.report["linear"] = {**lin, "reason": f"{lin['reason']}; and the Principled fit: {why}",
+        why = lin2.get("reason") or (f"the Principled fit needed a fixed ambient of {share:.0%} of the light "
+                                     f"(trusted up to {s.trust_ambient:.0%}): not one light per photo")
+        first.report["linear"] = {**lin, "reason": f"{lin['reason']}; without that part of the check: {why}",
                                   "principled_fit": {"ambient_share": share,
                                                      "solved_fraction": lin2.get("solved_fraction")}}
         return first
