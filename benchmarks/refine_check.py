@@ -239,7 +239,8 @@ def dome(args) -> None:
 
     models = _models()
     wood = load_maps(SHARED.parent / "textures" / "wood_table_worn", max_side=args.side)
-    lights = S.known_lights(16, seed=3, max_angle_deg=45.0)
+    lights = S.known_lights(16, seed=3, max_angle_deg=45.0, kind="point" if args.dome_light == "point" else
+                            "directional")
     print(f"Textured dome, {args.side}^2, 16 photos, light {args.dome_light}: normals vs the truth (mean deg); "
           "light directions (median deg)")
     print("| roughness | network | fit (check decides) | light dir | kept? | fit, residual check off | light dir | "
@@ -247,7 +248,7 @@ def dome(args) -> None:
     print("|---:|---:|---:|---:|---|---:|---:|---|")
     for rough in args.roughness:
         truth = S.textured_dome(args.side, wood, roughness=rough)
-        if args.dome_light == "dir":
+        if args.dome_light in ("dir", "point"):
             photos = S.render_capture(truth, lights, ambient=0.02, spp=32)
         else:
             photos = _env_photos(truth, lights if args.dome_light == "dir+env" else None)
@@ -257,12 +258,19 @@ def dome(args) -> None:
         forced = refine(photos, maps, dataclasses.replace(s, trust_residual=float("inf"), trust_inliers=0.0))
         cells = [f"{_mean_err(maps.normal, truth.normal, truth.mask):.2f}"]
         for res in (checked, forced):
-            d = "-" if args.dome_light == "env" else (  # the directional lights (none under the map alone)
-                f"{np.median([_angle(e['direction'], l.direction) for e, l in zip(res.lights, lights)]):.1f}")
+            d = "-" if args.dome_light == "env" else (  # light directions at the centre (none under the map alone)
+                f"{np.median([_angle(_towards(e), _towards(l)) for e, l in zip(res.lights, lights)]):.1f}")
             cells += [f"{_mean_err(res.maps.normal, truth.normal, truth.mask):.2f}", d]
             if res is checked:
                 cells.append("kept" if res.report["kept_network_maps"] else "fitted")
         print(f"| {rough} | {' | '.join(cells)} | {_check(checked)} |", flush=True)
+
+
+def _towards(light) -> np.ndarray:
+    """Direction toward a light (a lights.json entry or a scenes.lights light) from the frame's centre."""
+    if isinstance(light, dict):
+        return np.asarray(light["direction"] if "direction" in light else light["position"], float)
+    return np.asarray(getattr(light, "direction", None) or light.position, float)
 
 
 def _env_photos(truth, lights=None):
@@ -335,9 +343,9 @@ def main(argv=None) -> int:
     ap.add_argument("--side", type=int, default=None, help="image side (timing; dome: default 256)")
     ap.add_argument("--roughness", type=lambda v: [float(x) for x in v.split(",")], default=[0.4, 0.9],
                     help="dome roughness values, comma-separated (dome; default 0.4,0.9)")
-    ap.add_argument("--dome-light", choices=("dir", "env", "dir+env"), default="dir",
-                    help="dome: 16 directional lights plus a faint ambient (default), a turning environment map "
-                         "alone, or both (the map at 0.3)")
+    ap.add_argument("--dome-light", choices=("dir", "point", "env", "dir+env"), default="dir",
+                    help="dome: 16 directional lights plus a faint ambient (default), point lights 3 half-widths "
+                         "away instead, a turning environment map alone, or directional lights and the map at 0.3")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="a RefineSettings field for the fit (repeatable), e.g. light_iters=0")
