@@ -56,6 +56,10 @@ def register(sub) -> None:
                    help="keep the networks' maps as they are (no lights.json / fit.json)")
     p.add_argument("--refine-light", choices=("directional", "point"), default="directional",
                    help="light model of the refinement: a distant light or a near point light per photo")
+    p.add_argument("--refine-glossy", action="store_true",
+                   help="the object is glossy and each photo has one lamp, far away, in a dark room: fit it even "
+                        "where a matte surface does not explain the photos (not for lamps within a few object "
+                        "sizes; docs/refine.md)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
     p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")
@@ -87,9 +91,10 @@ def run(args) -> int:
     do_refine = REFINE_BY_DEFAULT if args.refine is None else args.refine
     settings = None
     if do_refine:
-        from matcap.refine import RefineSettings
+        from matcap.refine import GLOSSY_TRUST_AMBIENT, RefineSettings
 
-        settings = RefineSettings(light_model=args.refine_light, seed=args.seed, device=args.device)
+        settings = RefineSettings(light_model=args.refine_light, seed=args.seed, device=args.device,
+                                  trust_ambient=GLOSSY_TRUST_AMBIENT if args.refine_glossy else 0.0)
     spp = {"spp": args.spp} if args.spp is not None else {}
     relight = [{"env": env, **spp} for env in args.relight or []] + [{"point": p, **spp} for p in args.point or []]
     if args.spp is not None and not relight:

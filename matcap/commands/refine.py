@@ -20,6 +20,9 @@ def register(sub) -> None:
     p.add_argument("--srgb", action="store_true", help="decode 8-bit photos from sRGB (default: as the result did)")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    p.add_argument("--glossy", action="store_true",
+                   help="the object is glossy and each photo has one lamp, far away, in a dark room: fit it even "
+                        "where a matte surface does not explain the photos (docs/refine.md)")
     p.add_argument("--overwrite", action="store_true", help="replace RESULT (or a non-empty --out)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -30,7 +33,7 @@ def run(args) -> int:
 
     from matcap.capture import downscale_arrays, load_capture, refine_maps
     from matcap.errors import MatcapError
-    from matcap.refine import RefineSettings
+    from matcap.refine import GLOSSY_TRUST_AMBIENT, RefineSettings
     from matcap.results import check_not_replacing_inputs, check_output_dir, read_result, write_result
     from networks.inference import check_device
 
@@ -64,7 +67,8 @@ def run(args) -> int:
         if images[0].shape[:2] != maps.shape:
             raise MatcapError(f"{args.photos}: photos are {images[0].shape[1]}x{images[0].shape[0]} but the maps "
                               f"{maps.shape[1]}x{maps.shape[0]}")
-    settings = RefineSettings(light_model=args.light, seed=args.seed, device=args.device)
+    settings = RefineSettings(light_model=args.light, seed=args.seed, device=args.device,
+                              trust_ambient=GLOSSY_TRUST_AMBIENT if args.glossy else 0.0)
     refined, writer = refine_maps(maps, images, list(names), cap.colour, settings,
                                   meta.get("constant_maps") or {}, progress=not args.quiet)
     refined.meta["tool"] = "matcap refine"

@@ -31,6 +31,9 @@ from scenes.materialmaps import MaterialMaps
 LUMA = (0.2126, 0.7152, 0.0722)
 
 
+GLOSSY_TRUST_AMBIENT = 0.05  # RefineSettings.trust_ambient for a glossy object under distant lamps
+
+
 @dataclass
 class RefineSettings:
     """Knobs of :func:`refine` (recorded in fit.json). Prior weights are per pixel, against a data term summed
@@ -86,11 +89,12 @@ class RefineSettings:
     # normals resolved wrongly, 65 degrees off: 0.07-0.25)
     trust_spread: float = 0.02  # ... and the photos must not be (nearly) rank 1, as a flat sample's are (its one
     # normal cannot tell the lights apart: a flat wood sample 0.003, UW captures 0.07-0.09)
-    trust_ambient: float = 0.05  # where only the residual / inliers part of the check fails (a glossy object: its
-    # highlights are no Lambertian's), the fit runs anyway and is kept if its fixed ambient gives at most this share
-    # of the object's irradiance: one light per photo, as in a dark room, which the Principled fit explains.
-    # Environment-lit photos need far more (synthetic split: 0.09-0.31 where the fit ran, and it made them worse;
-    # glossy domes and the scenes it improved 0.004-0.006). 0: never run it (docs/refine.md, session 13)
+    trust_ambient: float = 0.0  # > 0 (``--refine-glossy`` sets GLOSSY_TRUST_AMBIENT): where only the residual /
+    # inliers part of the check fails (a glossy object: its highlights are no Lambertian's), the fit runs anyway and
+    # is kept if its fixed ambient gives at most this share of the object's irradiance (one lamp per photo, far
+    # away, in a dark room). Off by default: lamps about 3 object radii away pass it and ruin the maps (a glossy
+    # dome 3.71 -> 12.30 degrees), as does a turning environment map (4.19 -> 6.15); where it holds it gains
+    # (synthetic split 18.52 -> 18.24, glossy domes 3.80 -> 1.22, 3.99 -> 2.29). docs/refine.md, session 13
     seed: int = 0
     device: str = "cpu"
 
@@ -450,10 +454,10 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     images: K (H, W, 3) float32 linear RGB photos (at the maps' size); maps: the networks' :class:`MaterialMaps`
     (missing BRDF maps start from ``with_defaults``). Deterministic for ``settings.seed`` on one device.
 
-    Where the photos fail only the Lambertian part of the check (residual / inliers: a glossy object, or light
-    that is not one lamp per photo), the fit runs a second time without it and is kept if its fixed ambient gives
-    at most ``trust_ambient`` of the object's irradiance (:func:`ambient_share`); otherwise the first pass's kept
-    maps are returned, with both reasons.
+    With ``trust_ambient`` > 0, where the photos fail only the Lambertian part of the check (residual / inliers: a
+    glossy object, or light that is not one lamp per photo), the fit runs a second time without it and is kept if
+    its fixed ambient gives at most ``trust_ambient`` of the object's irradiance (:func:`ambient_share`);
+    otherwise the first pass's kept maps are returned, with both reasons.
     """
     import torch
 
