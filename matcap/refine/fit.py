@@ -93,8 +93,8 @@ class RefineSettings:
     # inliers part of the check fails (a glossy object: its highlights are no Lambertian's), the fit runs anyway and
     # is kept if its fixed ambient gives at most this share of the object's irradiance (one lamp per photo, far
     # away, in a dark room). Off by default: lamps about 3 object radii away pass it and ruin the maps (a glossy
-    # dome 3.71 -> 12.30 degrees), as does a turning environment map (4.19 -> 6.15); where it holds it gains
-    # (synthetic split 18.52 -> 18.24, glossy domes 3.80 -> 1.22, 3.99 -> 2.29). docs/refine.md, session 13
+    # dome 3.71 -> 12.3 degrees), as does a turning environment map (4.19 -> 6.15); where it holds it gains
+    # (synthetic split 18.52 -> 18.24, glossy domes 3.80 -> 1.22, 3.99 -> 2.3). docs/refine.md, session 13
     seed: int = 0
     device: str = "cpu"
 
