@@ -136,7 +136,7 @@ def uw(args) -> None:
         res = refine(images, maps, _settings(args))
         secs = time.perf_counter() - t0
         after = score(res.maps.normal)
-        d = [_angle(e["direction"], l) for e, l in zip(res.lights, obj.light_dirs)]
+        d = [_angle(_towards(e), l) for e, l in zip(res.lights, obj.light_dirs)]
         held = refine(images[:-1], maps, _settings(args))
         ho = fit_light_only(images[-1], held.maps, _settings(args))["psnr_db"]
         row = (name, before, after, float(np.median(d)), float(np.max(d)), res.report["psnr_db_mean"], ho, secs)
@@ -218,7 +218,7 @@ def samples(args) -> None:
         flat = np.zeros(m.shape + (3,), np.float32)
         flat[..., 2] = 1.0
         errs = [_mean_err(x, truth.normal, m) for x in (flat, maps.normal, res.maps.normal)]
-        d = np.median([_angle(e["direction"], l.direction) for e, l in zip(res.lights, lights)])
+        d = np.median([_angle(_towards(e), _towards(l)) for e, l in zip(res.lights, lights)])
         lin = res.report["linear"]
         print(f"| {name} | {errs[0]:.2f} | {errs[1]:.2f} | {errs[2]:.2f} | {d:.1f} | {lin['trusted']} | "
               f"{lin.get('reason', '')} |", flush=True)
