@@ -725,12 +725,14 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, pixels: int
 
 def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,
                 constants: dict[str, float] | None = None, *, progress: bool = False, seed: int = 0,
-                device: str = "cpu"):
+                device: str = "cpu", flags: tuple[str, str] = ("--refine-glossy", "--refine-light point")):
     """Run :func:`matcap.refine.refine` on ``maps`` (the networks' output) and the photos they came from.
 
     Returns ``(refined maps, writer)``: ``writer(folder)`` writes lights.json / fit.json / residual.png /
     light_variation.png and returns their names. The network maps stay recorded only in capture.json's summary
-    (``refine.normal_change_deg_mean``); ``--constant`` maps stay constant. A light-variation warning is printed.
+    (``refine.normal_change_deg_mean``); ``--constant`` maps stay constant. A light-variation warning is printed,
+    and where the maps are kept because the photos are not Lambertian, a note naming the two options ``flags``
+    (the glossy check, point lights) as the calling command spells them.
     """
     import sys
 
@@ -745,8 +747,14 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     if result.warning:
         print(f"warning: {result.warning}", file=sys.stderr)
     if result.report.get("kept_network_maps"):
-        print(f"note: refinement kept the networks' maps: {result.report['linear']['reason']}; lights.json is still "
-              f"fitted", file=sys.stderr)
+        lin = result.report["linear"] or {}
+        hint = ""
+        if (s.light_model == "directional" and s.trust_ambient <= 0 and lin.get("spread", 0) >= s.trust_spread
+                and (lin.get("residual", 0) > s.trust_residual or lin.get("inliers", 1) < s.trust_inliers)):
+            hint = (f" (a glossy object under a far lamp: try {flags[0]}; a lamp within a few object sizes: "
+                    f"try {flags[1]})")
+        print(f"note: refinement kept the networks' maps: {lin.get('reason')}; lights.json is still fitted{hint}",
+              file=sys.stderr)
     refined = result.maps.with_constants(constants or {})
     refined.meta = dict(maps.meta)
     r = result.report

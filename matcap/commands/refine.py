@@ -70,7 +70,8 @@ def run(args) -> int:
     settings = RefineSettings(light_model=args.light, seed=args.seed, device=args.device,
                               trust_ambient=GLOSSY_TRUST_AMBIENT if args.glossy else 0.0)
     refined, writer = refine_maps(maps, images, list(names), cap.colour, settings,
-                                  meta.get("constant_maps") or {}, progress=not args.quiet)
+                                  meta.get("constant_maps") or {}, progress=not args.quiet,
+                                  flags=("--glossy", "--light point"))
     refined.meta["tool"] = "matcap refine"
     write_result(refined, out, overwrite=True, extra_files=writer)
     r = refined.meta["refine"]
