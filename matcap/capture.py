@@ -749,8 +749,7 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     if result.report.get("kept_network_maps"):
         lin = result.report["linear"] or {}
         hint = ""
-        if (s.light_model == "directional" and s.trust_ambient <= 0 and lin.get("spread", 0) >= s.trust_spread
-                and (lin.get("residual", 0) > s.trust_residual or lin.get("inliers", 1) < s.trust_inliers)):
+        if lin.get("lambertian_only") and s.trust_ambient <= 0:
             hint = (f" (a glossy object under a far lamp: try {flags[0]}; a lamp within a few object sizes: "
                     f"try {flags[1]})")
         print(f"note: refinement kept the networks' maps: {lin.get('reason')}; lights.json is still fitted{hint}",

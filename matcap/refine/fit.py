@@ -467,7 +467,7 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
         s = settings or RefineSettings()
         first = _refine(torch, images, maps, s, progress)
         lin = first.report.get("linear") or {}
-        if not lin.pop("lambertian_only", False) or s.trust_ambient <= 0:
+        if not lin.get("lambertian_only") or s.trust_ambient <= 0:
             return first
         # the Lambertian part of the check alone failed: the Principled fit may still explain the photos (gloss)
         second = _refine(torch, images, maps, s, progress, lambertian=False)
@@ -546,7 +546,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         reason = _distrust(k_count, linear, linear_report.get("solved_fraction"), s, lambertian)
         linear_report = {**linear_report, "trusted": reason is None, **({"reason": reason} if reason else {})}
         if reason is not None and lambertian and _distrust(k_count, linear, None, s, False) is None:
-            linear_report["lambertian_only"] = True  # refine() tries the Principled fit's own check
+            linear_report["lambertian_only"] = True  # only residual / inliers failed: see trust_ambient
     trusted = linear_report is None or linear_report["trusted"]
     if not lambertian and not trusted:  # the Principled fit was not even started: refine() keeps the first pass
         return linear_report
