@@ -120,23 +120,29 @@ def test_degenerate_prior_does_not_raise(sphere):
         factorize(y, np.zeros((3, 3)), np.ones(3))
 
 
-def _capture(seed: int, size: int = 48):
-    """A rough dielectric sphere rendered by the fit's own forward model (Principled BSDF, distant lights)."""
+def _model_photos(normal, mask, base, roughness: float, lights, irradiance: float) -> list[np.ndarray]:
+    """K (H, W, 3) photos rendered by the fit's own forward model (Principled BSDF, no ambient): ``normal`` and
+    ``base`` (H, W, 3) on ``mask`` (zero elsewhere), one ``roughness``, metallic 0, distant ``lights`` (K, 3)."""
     import torch
 
     from matcap.refine.model import shade_directional
 
-    n, mask = sphere_normals(size, 0.45, 85.0)
-    base = np.where(mask[..., None], np.float32([0.6, 0.5, 0.4]), 0).astype(np.float32)
-    lights = cone_lights(8, 40.0, seed=seed)
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
     count = int(mask.sum())
     with torch.no_grad():
-        px = shade_directional(t(n[mask]), t(base[mask]), torch.full((count,), 0.6), torch.zeros(count),
-                               t(lights), torch.full((len(lights), 3), 2.5), torch.zeros(1, 9, 3)).numpy()
+        px = shade_directional(t(normal[mask]), t(base[mask]), torch.full((count,), roughness), torch.zeros(count),
+                               t(lights), torch.full((len(lights), 3), irradiance), torch.zeros(1, 9, 3)).numpy()
     photos = np.zeros((len(lights),) + mask.shape + (3,), np.float32)
     photos[:, mask] = px
-    return n, mask, base, lights, list(photos)
+    return list(photos)
+
+
+def _capture(seed: int, size: int = 48):
+    """A rough dielectric sphere rendered by the fit's own forward model (Principled BSDF, distant lights)."""
+    n, mask = sphere_normals(size, 0.45, 85.0)
+    base = np.where(mask[..., None], np.float32([0.6, 0.5, 0.4]), 0).astype(np.float32)
+    lights = cone_lights(8, 40.0, seed=seed)
+    return n, mask, base, lights, _model_photos(n, mask, base, 0.6, lights, 2.5)
 
 
 def test_refine_trusts_a_capture_it_explains_and_finds_its_lights():
@@ -182,10 +188,7 @@ def test_refine_keeps_the_network_maps_when_the_photos_are_not_explained():
 
 def _bumpy_plane(side: int = 64, amplitude: float = 1.0):
     """A full-frame plane with smooth bumps (no contour) under 10 lights, rendered by the fit's own model."""
-    import torch
     from scipy import ndimage
-
-    from matcap.refine.model import shade_directional
 
     rng = np.random.default_rng(0)
     height = ndimage.gaussian_filter(rng.normal(size=(side, side)), 3)
@@ -194,12 +197,8 @@ def _bumpy_plane(side: int = 64, amplitude: float = 1.0):
     n = (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
     base = np.full((side, side, 3), 0.5, np.float32)
     lights = cone_lights(10, 40.0, seed=1)
-    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
-    with torch.no_grad():
-        px = shade_directional(t(n.reshape(-1, 3)), t(base.reshape(-1, 3)), torch.full((side * side,), 0.6),
-                               torch.zeros(side * side), t(lights), torch.full((10, 3), 2.0),
-                               torch.zeros(1, 9, 3)).numpy()
-    return n, np.ones((side, side), bool), base, list(px.reshape(10, side, side, 3))
+    mask = np.ones((side, side), bool)
+    return n, mask, base, _model_photos(n, mask, base, 0.6, lights, 2.0)
 
 
 QUICK = dict(seed=0, fine_iters=10, coarse_iters=0, light_iters=10)
@@ -302,25 +301,15 @@ def test_ambient_share_of_known_lights():
 def glossy_sphere():
     """A glossy sphere (roughness 0.18) under 12 lights, no ambient, rendered by the fit's model, and a perturbed
     start (5.9 degrees): its highlights fail the Lambertian check (inliers 0.846 of 0.85)."""
-    import torch
-
     from matcap.refine import synthetic as S
-    from matcap.refine.model import shade_directional
 
     truth = S.sphere_maps(64)
     m = truth.mask
-    count = int(m.sum())
-    lights = cone_lights(12, 45.0, seed=1)
-    with torch.no_grad():
-        px = shade_directional(torch.from_numpy(truth.normal[m]), torch.full((count, 3), 0.6),
-                               torch.full((count,), 0.18), torch.zeros(count), torch.from_numpy(lights).float(),
-                               torch.full((12, 3), 2.0), torch.zeros(1, 9, 3)).numpy()
-    photos = np.zeros((12,) + m.shape + (3,), np.float32)
-    photos[:, m] = px
     base = np.where(m[..., None], np.float32([0.6, 0.6, 0.6]), 0).astype(np.float32)
+    photos = _model_photos(truth.normal, m, base, 0.18, cone_lights(12, 45.0, seed=1), 2.0)
     start = S.perturb(MaterialMaps(normal=truth.normal, mask=m, base_color=base,
                                    roughness=np.where(m, 0.18, 0).astype(np.float32)))
-    return truth, list(photos), start
+    return truth, photos, start
 
 
 def test_a_glossy_capture_failing_the_lambertian_check_is_fitted(glossy_sphere):
