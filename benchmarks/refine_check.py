@@ -7,9 +7,10 @@
     python benchmarks/refine_check.py timing [--side 512]  # one fit at side^2, K=16: seconds, peak RSS (subprocess)
     python benchmarks/refine_check.py dome                 # a glossy and a matte textured dome under 16 known
                                                            # lights: as the check decides, and always fitted
+                                                           # (--roughness 0.4,0.9 --dome-light dir|point|env|dir+env)
     python benchmarks/refine_check.py samples              # a flat wood sample and a bumpy plane, rendered with
                                                            # Mitsuba under 12 known lights: is the fit trusted?
-    ... --set light_iters=0 --set prior_target=network     # any RefineSettings field (sphere, uw, synthetic, samples)
+    ... --set light_iters=0 --set prior_target=network     # any RefineSettings field (all but timing)
 
 Every row runs the bundled networks first (the "before"), then :func:`matcap.refine.refine` (the "after").
 ``--threads`` sets torch's CPU threads (default: torch's own choice).
@@ -227,9 +228,9 @@ def samples(args) -> None:
 def dome(args) -> None:
     """The capture the refinement is made for: one object, one light moved around it in a dark room. A sphere up
     to its contour carrying the detail and colours of the CC0 `wood_table_worn` set, glossy (roughness 0.4) and
-    matte (0.9) (``--roughness``), rendered with Mitsuba under 16 known directional lights in a 45-degree cone plus a faint ambient;
-    the fit as the check decides, and trusted whatever the check's residual / inliers say (``trust_residual=inf``,
-    ``trust_inliers=0``)."""
+    matte (0.9) (``--roughness``), rendered with Mitsuba under 16 known directional lights in a 45-degree cone
+    plus a faint ambient (``--dome-light``: or point lights, an environment map, both); the fit as the check
+    decides, and trusted whatever the check's residual / inliers say (``trust_residual=inf``, ``trust_inliers=0``)."""
     import dataclasses
 
     from matcap.capture import estimate
