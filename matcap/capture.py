@@ -731,8 +731,8 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     Returns ``(refined maps, writer)``: ``writer(folder)`` writes lights.json / fit.json / residual.png /
     light_variation.png and returns their names. The network maps stay recorded only in capture.json's summary
     (``refine.normal_change_deg_mean``); ``--constant`` maps stay constant. A light-variation warning is printed,
-    and where the maps are kept because the photos are not Lambertian, a note naming the two options ``flags``
-    (the glossy check, point lights) as the calling command spells them.
+    and where the maps are kept because the photos are not Lambertian, a note naming the options ``flags`` (the
+    glossy check; point lights, where the near-lamp check did not run) as the calling command spells them.
     """
     import sys
 
@@ -749,9 +749,10 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     if result.report.get("kept_network_maps"):
         lin = result.report["linear"] or {}
         hint = ""
-        if lin.get("lambertian_only") and s.trust_ambient <= 0:
-            hint = (f" (a glossy object under a far lamp: try {flags[0]}; a lamp within a few object sizes: "
-                    f"try {flags[1]})")
+        if lin.get("lambertian_only") and s.light_model != "point":
+            tips = ([f"a glossy object under a far lamp: try {flags[0]}"] if s.trust_ambient <= 0 else []) + (
+                [] if "near_fit" in lin else [f"a lamp within a few object sizes: try {flags[1]}"])
+            hint = f" ({'; '.join(tips)})" if tips else ""
         print(f"note: refinement kept the networks' maps: {lin.get('reason')}; lights.json is still fitted{hint}",
               file=sys.stderr)
     refined = result.maps.with_constants(constants or {})

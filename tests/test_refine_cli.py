@@ -63,8 +63,11 @@ def test_capture_refine_writes_lights_fit_and_diagnostics_and_refine_reruns(tiny
     assert (out / "normal.exr").read_bytes() == before
     r3 = run_cli("refine", str(out), str(folder), "--quiet", "--overwrite", "--light", "point", "--glossy")
     assert r3.returncode == 0, r3.stderr
-    assert json.loads((out / "lights.json").read_text())["images"][0]["kind"] == "point"
-    assert json.loads((out / "fit.json").read_text())["settings"]["trust_ambient"] == 0.05
+    entries = json.loads((out / "lights.json").read_text())["images"]
+    assert all(("position" if e["kind"] == "point" else "direction") in e for e in entries)  # a lamp left
+    fit = json.loads((out / "fit.json").read_text())  # infinitely far by the fit is a directional entry
+    assert fit["settings"]["trust_ambient"] == 0.05 and fit["settings"]["light_model"] == "point"
+    assert "light_distance_median" in fit  # the lamps' distances were fitted
     assert json.loads((out / "capture.json").read_text())["tool"] == "matcap refine"
 
 

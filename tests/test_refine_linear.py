@@ -339,9 +339,10 @@ def test_a_fit_that_needs_a_strong_ambient_keeps_the_maps(glossy_sphere):
     assert off.report["kept_network_maps"] and "principled_fit" not in off.report["linear"]
 
 
-def test_kept_for_gloss_the_note_names_both_options(glossy_sphere, capsys):
-    """Maps kept because the photos are not Lambertian: the one-line note points to the glossy check and to point
-    lights, spelled as the calling command spells them."""
+def test_kept_for_gloss_the_note_names_the_options(glossy_sphere, capsys):
+    """Maps kept because the photos are not Lambertian: the one-line note points to the glossy check, and to point
+    lights where the near-lamp check did not run (here it ran and found the lamps infinitely far), spelled as the
+    calling command spells them."""
     from matcap.capture import refine_maps
 
     truth, photos, start = glossy_sphere
@@ -350,7 +351,9 @@ def test_kept_for_gloss_the_note_names_both_options(glossy_sphere, capsys):
     refine_maps(start, photos, names, "linear", quick)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "kept the networks' maps" in err[0], err
-    assert "try --refine-glossy" in err[0] and "try --refine-light point" in err[0], err
-    refine_maps(start, photos, names, "linear", quick, flags=("--glossy", "--light point"))
+    assert "infinitely far away" in err[0] and "try --refine-glossy" in err[0], err
+    assert "try --refine-light point" not in err[0], err
+    unchecked = RefineSettings(seed=0, kept_light_iters=10, near_check=False)
+    refine_maps(start, photos, names, "linear", unchecked, flags=("--glossy", "--light point"))
     err = capsys.readouterr().err
     assert "try --glossy" in err and "try --light point" in err and "--refine-" not in err, err

@@ -35,3 +35,35 @@ def test_constant_sh_radiance_gives_pi_times_radiance():
     n = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])
     e = sh_irradiance(n, sh)
     assert torch.allclose(e, torch.full_like(e, 0.3 * math.pi), rtol=1e-5)
+
+
+def test_near_lights_span_distant_and_point_lights():
+    """A near light (direction and irradiance at a centre, inverse distance u) is exactly the distant light at
+    u = 0, and the point light at centre + direction / u with intensity irradiance / u^2 otherwise; lights.json
+    entries say so."""
+    import numpy as np
+
+    from matcap.refine.fit import lights_to_entries
+    from matcap.refine.model import LightParams
+
+    torch.manual_seed(0)
+    pos = torch.rand(50, 3) * 2 - 1
+    pos[:, 2] = 0
+    centre = torch.tensor([0.1, -0.2, 0.0])
+    d = torch.tensor([[0.3, 0.2, 0.9], [-0.5, 0.1, 0.8]])
+    d = d / d.norm(dim=-1, keepdim=True)
+    log_e = torch.log(torch.tensor([[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]]))
+    sh = torch.zeros(1, 9, 3)
+    u = torch.tensor([0.0, 0.25])
+    near = LightParams("near", d, log_e, sh, u, centre)
+    wo, irr = near.incident(pos)
+    far_wo, far_irr = LightParams("directional", d, log_e, sh).incident(pos)
+    assert torch.equal(wo[0], far_wo[0].expand(50, 3)) and torch.equal(irr[0], far_irr[0].expand(50, 3))
+    point = LightParams("point", (centre + d[1] / 0.25)[None], log_e[1:] - 2 * math.log(0.25), sh)
+    p_wo, p_irr = point.incident(pos)
+    assert torch.allclose(wo[1], p_wo[0], atol=1e-6) and torch.allclose(irr[1], p_irr[0], rtol=1e-5)
+    entries = lights_to_entries(near, scale=2.0)
+    assert entries[0]["kind"] == "directional" and np.allclose(entries[0]["direction"], d[0].numpy())
+    assert np.allclose(entries[0]["intensity"], [0.5, 1.0, 1.5])
+    assert entries[1]["kind"] == "point" and np.allclose(entries[1]["position"], (centre + 4 * d[1]).numpy())
+    assert np.allclose(entries[1]["intensity"], [0.25 * 16] * 3, rtol=1e-5)

@@ -55,7 +55,9 @@ def register(sub) -> None:
     g.add_argument("--no-refine", dest="refine", action="store_false",
                    help="keep the networks' maps as they are (no lights.json / fit.json)")
     p.add_argument("--refine-light", choices=("directional", "point"), default="directional",
-                   help="light model of the refinement: a distant light or a near point light per photo")
+                   help="light model of the refinement: distant lights (default; where they fail to explain the photos, "
+                        "lamps a few object sizes away are tried and kept if they do) or a lamp per photo whose "
+                        "distance the fit finds, always")
     p.add_argument("--refine-glossy", action="store_true",
                    help="the object is glossy and each photo has one lamp, far away, in a dark room: fit it even "
                         "where a matte surface does not explain the photos (not for lamps within a few object "

@@ -15,7 +15,8 @@ def register(sub) -> None:
     p.add_argument("--out", help="write the refined result here instead of replacing RESULT")
     p.add_argument("--mask", help="mask image (default: the result's mask.png)")
     p.add_argument("--light", choices=("directional", "point"), default="directional",
-                   help="light model: a distant light or a near point light per photo (default directional)")
+                   help="light model: distant lights (default; near lamps are tried where they fail) or a lamp per photo "
+                        "whose distance the fit finds, always")
     p.add_argument("--linear", action="store_true", help="take 8-bit photos as linear (default: as the result did)")
     p.add_argument("--srgb", action="store_true", help="decode 8-bit photos from sRGB (default: as the result did)")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")

@@ -10,8 +10,9 @@ light-variation weight (:func:`light_variation`), and the prior pulls normals, b
 toward the network's values (this is what stops the drift into the generalized bas-relief family).
 
 Coarse to fine:
-  1. lights: Lambertian least squares from the network normals, then a joint robust fit of the lights and of the
-     maps of a random subsample of pixels of a downsampled copy of the photos;
+  1. lights: the Lambertian factorization (:mod:`matcap.refine.linear`; or least squares from the network
+     normals), then a joint robust fit of the lights and of the maps of a random subsample of pixels of a
+     downsampled copy of the photos; near lamps start there as distant ones and then fit their distances;
   2. maps: with the lights fixed every pixel is an independent problem: Adam on all pixels at once (in chunks), on
      a half-size copy first, whose corrections are upsampled as the start of the full-size solve.
 Photos are scaled so that their mean over the mask is 0.5 (the fit's units); lights are reported in photo units.
@@ -39,7 +40,8 @@ class RefineSettings:
     """Knobs of :func:`refine` (recorded in fit.json). Prior weights are per pixel, against a data term summed
     over the images (so more photos weigh more)."""
 
-    light_model: str = "directional"  # or "point" (a near point light per photo)
+    light_model: str = "directional"  # distant lights, or "point": a lamp per photo whose distance the fit finds
+    # (started at the distant solution: infinitely far, free to come closer; far lamps stay far)
     rounds: int = 1  # >1: alternate (lights from the refined maps, maps again) this many times in all
     joint_lights: bool = True  # the light fit also frees the subsample's maps (anchored by the prior); False:
     # lights from the network maps alone (measured worse: UW light directions 18-24 deg instead of 6-7)
@@ -60,7 +62,6 @@ class RefineSettings:
     lr_pixel: float = 0.05
     chunk: int = 32768  # pixels per chunk of the per-pixel solve (memory)
     variation_threshold: float = 0.08  # per-pixel light variation (std / mean over photos) below this is weak
-    point_distance: float = 4.0  # start distance of point lights, in half-widths of the framing plane
     fit_brdf: bool = True  # False: only normals are refined (base colour still is: it carries the albedo)
     light_init: str = "linear"  # "linear": Lambertian factorization, its ambiguity fixed by the network normals
     # and the occluding contour (matcap.refine.linear; directional lights only: point lights start as "network");
@@ -95,6 +96,18 @@ class RefineSettings:
     # away, in a dark room). Off by default: lamps about 3 object radii away pass it and ruin the maps (a glossy
     # dome 3.71 -> 12.3 degrees), as does a turning environment map (4.19 -> 6.15); where it holds it gains
     # (synthetic split 18.52 -> 18.24, glossy domes 3.80 -> 1.22, 3.99 -> 2.3). docs/refine.md, session 13
+    near_check: bool = True  # where only the residual / inliers part of the check fails, fit lamps whose
+    # distance the fit finds (a hand-held lamp near the object: its falloff is no distant light's) and keep that
+    # fit if ...
+    near_distance: float = 10.0  # ... the median lamp came out within this many object radii (the radius of the
+    # disc as large as the mask), ...
+    near_ambient: float = 0.2  # ... its fixed ambient gives at most this share of the object's irradiance (with
+    # --refine-light point: only this), ...
+    near_loss_ratio: float = 0.8  # ... and the distances cut the light fit's photometric loss to at most this
+    # share of what distant lamps reach in as many steps (matte near-lit domes 0.28-0.55; environment-lit scenes
+    # 0.89-0.99), ...
+    near_dark: float = 0.05  # ... or the fixed ambient gives at most this share (a dark room: a glossy object's
+    # highlights dominate its loss, near-lit glossy domes 0.94-0.95)
     seed: int = 0
     device: str = "cpu"
 
@@ -429,15 +442,22 @@ def _above_horizon(torch, d):
     return d
 
 
-def _to_point(torch, lights, prob: _Problem, s: RefineSettings):
-    """Directional -> point lights at ``point_distance`` from the object's centre (irradiance kept there)."""
+def _to_near(torch, lights, centre):
+    """Directional -> near lights (:class:`matcap.refine.model.LightParams` "near"): the same directions and
+    irradiances at ``centre`` (3,), infinitely far (inverse distance 0) and free to come closer."""
     from matcap.refine.model import LightParams
 
-    centre = prob.pos.mean(0)
-    d = lights.directions()
-    pos = centre[None] + s.point_distance * d
-    log_i = lights.log_intensity + 2.0 * math.log(s.point_distance)
-    return LightParams("point", pos.detach().clone(), log_i.detach().clone(), lights.sh.detach().clone())
+    k = lights.vec.shape[0]
+    return LightParams("near", lights.directions().detach().clone(), lights.log_intensity.detach().clone(),
+                       lights.sh.detach().clone(), torch.zeros(k, device=lights.vec.device), centre)
+
+
+def _centre(torch, mask: np.ndarray):
+    """(3,) plane position of the mask's centroid: where near lights' directions and irradiances refer to."""
+    from matcap.refine.model import plane_positions
+
+    rows, cols = np.nonzero(mask)
+    return plane_positions(torch.from_numpy(rows), torch.from_numpy(cols), *mask.shape).mean(0)
 
 
 def _adam(torch, params, lr):
@@ -454,10 +474,12 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     images: K (H, W, 3) float32 linear RGB photos (at the maps' size); maps: the networks' :class:`MaterialMaps`
     (missing BRDF maps start from ``with_defaults``). Deterministic for ``settings.seed`` on one device.
 
-    With ``trust_ambient`` > 0, where the photos fail only the Lambertian part of the check (residual / inliers: a
-    glossy object, or light that is not one lamp per photo), the fit runs a second time without it and is kept if
-    its fixed ambient gives at most ``trust_ambient`` of the object's irradiance (:func:`ambient_share`);
-    otherwise the first pass's kept maps are returned, with both reasons.
+    Where the photos fail only the Lambertian part of the check (residual / inliers: a near lamp's falloff, a glossy
+    object, or light that is not one lamp per photo), the fit runs again without it, with lights whose distance
+    it finds (``near_check``), and is kept if its lamps came out within ``near_distance`` object radii and its fixed
+    ambient gives at most ``near_ambient`` of the object's irradiance (:func:`ambient_share`); then (with
+    ``trust_ambient`` > 0) with distant lights, kept if the share is at most ``trust_ambient``. Otherwise the first
+    pass's kept maps are returned, with every reason.
     """
     import torch
 
@@ -465,32 +487,73 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     torch.use_deterministic_algorithms(True, warn_only=True)  # bit-for-bit repeatable for a seed (measured)
     try:
         s = settings or RefineSettings()
-        first = _refine(torch, images, maps, s, progress)
+        point = s.light_model == "point"
+        first = _refine(torch, images, maps, s, progress, near=point)
         lin = first.report.get("linear") or {}
-        if not lin.get("lambertian_only") or s.trust_ambient <= 0:
+        if not lin.get("lambertian_only"):
             return first
-        # the Lambertian part of the check alone failed: the Principled fit may still explain the photos (gloss)
-        second = _refine(torch, images, maps, s, progress, lambertian=False)
-        if isinstance(second, dict):  # its check failed before any fit
-            lin2, share = second, None
-        else:
-            lin2, share = second.report["linear"], second.report["ambient_share"]
-        if share is not None and share <= s.trust_ambient:
-            second.report["linear"] = {**lin2, "check": "principled", "reason_lambertian": lin["reason"]}
-            return second
-        why = lin2.get("reason") or (f"the Principled fit needed a fixed ambient of {share:.0%} of the light "
-                                     f"(trusted up to {s.trust_ambient:.0%}): not one light per photo")
-        first.report["linear"] = {**lin, "reason": f"{lin['reason']}; without that part of the check: {why}",
-                                  "principled_fit": {"ambient_share": share,
-                                                     "solved_fraction": lin2.get("solved_fraction")}}
+        # the Lambertian part of the check alone failed: the Principled fit may still explain the photos
+        looks = (["near"] if point or s.near_check else []) + (["glossy"] if s.trust_ambient > 0 and not point else [])
+        whys, tried = [], {}
+        for look in looks:
+            second = _refine(torch, images, maps, s, progress, lambertian=False, near=look == "near",
+                             compare=look == "near" and not point)
+            if isinstance(second, dict):  # its check failed before any fit (the same for every look)
+                whys.append(second.get("reason"))
+                tried[look] = {"solved_fraction": second.get("solved_fraction")}
+                break
+            rep = second.report
+            lin2, share = rep["linear"], rep["ambient_share"]
+            if look == "near":
+                dist = rep.get("light_distance_median")
+                radii = None if dist is None else dist / _object_radius(maps.mask)
+                ratio = rep.get("near_loss_ratio")
+                if not point and (radii is None or radii > s.near_distance):
+                    why = (f"the lamps came out {'infinitely far' if radii is None else f'{radii:.1f} object radii'}"
+                           f" away (near from {s.near_distance:g})")
+                elif share > s.near_ambient:
+                    why = (f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (trusted up to "
+                           f"{s.near_ambient:.0%}): not one lamp per photo")
+                elif not point and ratio > s.near_loss_ratio and share > s.near_dark:
+                    why = (f"the lamps' distances explain little (the fit's loss {ratio:.0%} of distant lamps', "
+                           f"trusted up to {s.near_loss_ratio:.0%}) under a fixed ambient of {share:.0%} (trusted "
+                           f"whatever the loss up to {s.near_dark:.0%})")
+                else:
+                    why = None
+                ok = why is None
+                tried[look] = {"ambient_share": share, "light_distance_radii": None if radii is None else
+                               round(radii, 2), "loss_ratio": ratio, "solved_fraction": lin2.get("solved_fraction")}
+            else:
+                ok = share <= s.trust_ambient
+                why = (f"the Principled fit needed a fixed ambient of {share:.0%} of the light (trusted up to "
+                       f"{s.trust_ambient:.0%}): not one light per photo")
+                tried[look] = {"ambient_share": share, "solved_fraction": lin2.get("solved_fraction")}
+            if ok:
+                rep["linear"] = {**lin2, "check": "near lamps" if look == "near" else "principled",
+                                 "reason_lambertian": lin["reason"]}
+                return second
+            whys.append(why)
+        if whys:
+            first.report["linear"] = {**lin, "reason": f"{lin['reason']}; without that part of the check: "
+                                                       + "; ".join(w for w in whys if w),
+                                      **{("near_fit" if k == "near" else "principled_fit"): v
+                                         for k, v in tried.items()}}
         return first
     finally:
         torch.use_deterministic_algorithms(was[0], warn_only=was[1])
 
 
-def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool = True) -> RefineResult | dict:
+def _object_radius(mask: np.ndarray) -> float:
+    """Radius of the disc as large as the mask, in half-widths of the framing plane (:func:`plane_positions`)."""
+    return max(math.sqrt(float(np.count_nonzero(mask)) / math.pi) * 2.0 / mask.shape[1], 1e-6)
+
+
+def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool = True, near: bool = False,
+            compare: bool = False) -> RefineResult | dict:
     """One fit; ``lambertian`` False leaves the residual / inliers part of the check out (:func:`refine`) and
-    returns only the check's report (a dict) where the rest of it fails."""
+    returns only the check's report (a dict) where the rest of it fails; ``near``: near lights (the distant
+    ones, then their distances); ``compare``: also fit the distant ones as long again, and report the near fit's
+    data term over theirs (``near_loss_ratio``)."""
     if s.light_model not in ("directional", "point"):
         raise MatcapError(f"light model must be 'directional' or 'point', got {s.light_model!r}")
     t_start = time.perf_counter()
@@ -514,7 +577,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     weight = np.clip(np.nan_to_num(variation) / s.variation_threshold, 0.1, 1.0).astype(np.float32)
     c = s.cauchy
 
-    bar = _Bar(progress, s)
+    bar = _Bar(progress, s, near)
     timings: dict[str, float] = {}
 
     # ---- 1. lights on a downsampled subsample, jointly with those pixels' maps
@@ -536,7 +599,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         raise MatcapError(f"prior_target must be 'network', 'aligned' or 'photos', got {s.prior_target!r}")
     start = start_l = None
     linear = linear_report = None
-    if s.light_init == "linear" and s.light_model == "directional":  # the factorization: distant lights
+    if s.light_init == "linear":  # the factorization (distant lights; near ones start from its solution)
         linear_report = {}
         if k_count >= 4:
             linear = _linear_lights(obs_l, mask_l, arr_l, s, rng, lambertian)
@@ -552,7 +615,9 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         return linear_report
     if not trusted:
         start = None
-    if linear is not None and trusted:
+    if near and not lambertian:  # the distant lamps' photo normals carry the near lamps' falloff: the network's
+        start = None  # are the start and the prior (a near-lit dome 1.50 / 1.63 degrees, against 2.29 / 2.41)
+    elif linear is not None and trusted:
         arrays = dict(arrays, normal=prior)
         if hw_l == (h, w):
             arr_l, start_l = arrays, start
@@ -563,10 +628,13 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     lights = _init_lights(torch, prob, s, device, linear.directions if linear is not None and trusted else None)
     from matcap.refine.model import PixelParams
 
+    last = {}  # the data term of joint()'s last step
+
     def joint(lights, iters, label, prob=prob, px=None):
         if px is None:
             px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
         light_t = [lights.vec, lights.log_intensity] + ([lights.sh] if s.ambient != "none" else [])
+        light_t += [lights.inv_distance] if lights.kind == "near" else []
         groups = [{"params": light_t, "lr": s.lr_light}]
         if s.joint_lights and trusted:  # kept maps: the lights are fitted to them as they are
             groups.append({"params": px.tensors(), "lr": s.lr_pixel})
@@ -576,23 +644,29 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         opt = torch.optim.Adam(groups)
         for it in range(iters):
             opt.zero_grad()
-            per, _ = _loss(torch, prob, px, lights, s, c, s.fit_brdf)
+            per, data = _loss(torch, prob, px, lights, s, c, s.fit_brdf)
             loss = per.mean()
             loss.backward()
             opt.step()
-            if lights.kind == "point":  # a point light behind the framing plane lights nothing the camera sees
+            if lights.kind == "near":  # a negative inverse distance would put the lamp behind the object
                 with torch.no_grad():
-                    lights.vec[:, 2].clamp_(min=0.05)
+                    lights.inv_distance.clamp_(min=0.0)
+            last["data"] = float(data.detach().mean())
             bar.step(label, float(loss.detach()))
         for t in lights.tensors():
             t.requires_grad_(False)
         return lights
 
     light_iters = s.light_iters if trusted else s.kept_light_iters
-    bar.add_total(light_iters - s.light_iters)
+    bar.add_total(light_iters - s.light_iters + (s.light_iters if near and compare else 0))
     lights = joint(lights, light_iters, "lights")
-    if s.light_model == "point":
-        lights = joint(_to_point(torch, lights, prob, s), s.light_iters, "point lights")
+    near_gain = None
+    if near:  # the lamps' distances, from the distant solution
+        if compare:  # as many more steps with the lamps kept distant: what the distances gain is measured against
+            joint(lights.detached(), s.light_iters, "distant lights")
+            distant = last["data"]
+        lights = joint(_to_near(torch, lights, _centre(torch, mask).to(device)), s.light_iters, "point lights")
+        near_gain = last["data"] / max(distant, 1e-12) if compare else None
     timings["lights_s"] = time.perf_counter() - t0
 
     # ---- 2. per pixel, lights fixed: half size, then full size
@@ -678,7 +752,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         "psnr_db": [round(p, 3) for p in psnr],
         "psnr_db_mean": round(float(np.mean(psnr)), 3),
         "residual_mean": round(float(np.nanmean(residual)), 5),
-        "iterations": {"lights": light_iters * (2 if s.light_model == "point" else 1), **iters_done},
+        "iterations": {"lights": light_iters + (s.light_iters if near else 0), **iters_done},
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(float(n_change.mean()), 3),
@@ -690,10 +764,19 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
             "inliers": round(linear.inliers, 4), "spread": round(linear.spread, 5), "ambiguity": s.ambiguity})},
         "kept_network_maps": not trusted,
         "ambient_share": round(share, 4),
+        **({"light_distance_median": _median_distance(lights)} if near else {}),
+        **({"near_loss_ratio": round(near_gain, 4)} if near_gain is not None else {}),
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
     return RefineResult(refined, light_entries, report, residual, variation, warning, prediction)
+
+
+def _median_distance(lights) -> float:
+    """Median distance of near lights from the object's centre, in half-widths of the framing plane (inf: at
+    None: at least half of them are distant, farther than 10^6)."""
+    u = float(lights.inv_distance.clamp(min=0.0).median())
+    return round(1.0 / u, 3) if u > 1e-6 else None
 
 
 def ambient_share(torch, lights, pos, normal) -> float:
@@ -715,7 +798,7 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
     """Adam on every pixel (independent problems once the lights are fixed), chunk by chunk."""
     from matcap.refine.model import PixelParams
 
-    lights = type(lights)(lights.kind, *(t.detach() for t in lights.tensors()))
+    lights = lights.detached()
     out = [t.detach().clone() for t in px0.tensors()]
     n = len(prob)
     chunks = [slice(i, min(i + s.chunk, n)) for i in range(0, n, s.chunk)]
@@ -753,11 +836,18 @@ def lights_to_entries(lights, scale: float) -> list[dict[str, Any]]:
     out = []
     inten = (lights.log_intensity.exp() / scale).detach().cpu().numpy()
     sh = (lights.sh / scale).detach().cpu().numpy()
-    vec = lights.directions() if lights.kind == "directional" else lights.vec
-    vec = vec.detach().cpu().numpy()
+    kinds = [lights.kind] * len(inten)
+    vec = (lights.directions() if lights.kind in ("directional", "near") else lights.vec).detach().cpu().numpy()
+    if lights.kind == "near":  # a point light at centre + direction / u (intensity: irradiance there * distance^2)
+        u = lights.inv_distance.detach().cpu().numpy().clip(0.0, None)[:, None]
+        near = u > 1e-6  # 0: the fit left the lamp infinitely far, a distant light
+        ud = np.maximum(u, 1e-6)
+        vec = np.where(near, lights.centre.detach().cpu().numpy()[None] + vec / ud, vec)
+        inten = np.where(near, inten / ud ** 2, inten)
+        kinds = ["point" if v else "directional" for v in near[:, 0]]
     for k in range(len(inten)):
-        e = {"kind": lights.kind}
-        e["direction" if lights.kind == "directional" else "position"] = [float(v) for v in vec[k]]
+        e = {"kind": kinds[k]}
+        e["direction" if kinds[k] == "directional" else "position"] = [float(v) for v in vec[k]]
         e["intensity"] = [float(v) for v in inten[k]]
         e["sh"] = [[float(v) for v in row] for row in sh[min(k, len(sh) - 1)]]
         out.append(e)
@@ -767,10 +857,10 @@ def lights_to_entries(lights, scale: float) -> list[dict[str, Any]]:
 class _Bar:
     """tqdm progress with the current loss (or a callback ``progress(label, done, total, loss)``)."""
 
-    def __init__(self, progress, s: RefineSettings):
+    def __init__(self, progress, s: RefineSettings, near: bool = False):
         self.cb = progress if callable(progress) else None
         self.done = 0
-        self.total = s.light_iters * (2 if s.light_model == "point" else 1)
+        self.total = s.light_iters * (2 if near else 1)
         self.bar = None
         if progress is True:
             from tqdm import tqdm
@@ -829,7 +919,7 @@ def fit_light_only(image: np.ndarray, maps: MaterialMaps, settings: RefineSettin
         per, _ = _loss(torch, sub, px_sub, lights, s, s.cauchy, s.fit_brdf)
         per.mean().backward()
         opt.step()
-    lights = type(lights)(lights.kind, *(t.detach() for t in lights.tensors()))
+    lights = lights.detached()
     pred = _predict(torch, full, px, lights, s)
     err = pred - full.obs.cpu().numpy()
     peak = float(np.percentile(full.obs.cpu().numpy()[0].max(axis=1), 99.9))

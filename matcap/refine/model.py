@@ -6,8 +6,9 @@ at every pixel. One photo k at pixel p::
     I_k(p) = principled_eval(n_p, +z, l_k(p), base_p, rough_p, metal_p) * E_k(p)          (the moving light)
            + (1 - metal_p) * base_p / pi * sum_j A_j L_kj Y_j(n_p)                       (order-2 SH ambient)
 
-``l_k(p)``/``E_k(p)``: a directional light (unit direction, RGB irradiance) or a near point light (position on the
-framing plane's world units, RGB intensity / distance^2). The ambient term is the diffuse part of the Principled
+``l_k(p)``/``E_k(p)``: a directional light (unit direction, RGB irradiance), a point light (position on the
+framing plane's world units, RGB intensity / distance^2), or a near light: a point light given by its direction and
+irradiance at the object's centre and its inverse distance (0: the directional light; what the fit optimises). The ambient term is the diffuse part of the Principled
 BSDF under an order-2 SH radiance (Ramamoorthi & Hanrahan 2001 irradiance; its specular part is left out).
 """
 from __future__ import annotations
@@ -56,7 +57,10 @@ def plane_positions(rows: torch.Tensor, cols: torch.Tensor, height: int, width: 
 class LightParams:
     """Per-image light parameters (free tensors, optimised). K images.
 
-    kind "directional": ``vec`` (K, 3) direction (normalised on use); "point": ``vec`` (K, 3) position.
+    kind "directional": ``vec`` (K, 3) direction (normalised on use); "point": ``vec`` (K, 3) position; "near":
+    ``vec`` (K, 3) direction from ``centre`` and ``log_intensity`` the log irradiance there, at distance
+    ``1 / inv_distance`` (``inv_distance`` 0: exactly the directional light, so the fit can move a lamp in from
+    infinity).
     ``log_intensity`` (K, 3): log RGB irradiance (directional) or radiant intensity (point); ``sh`` (K, 9, 3), or
     (1, 9, 3) for one ambient shared by every photo.
     """
@@ -65,9 +69,16 @@ class LightParams:
     vec: torch.Tensor
     log_intensity: torch.Tensor
     sh: torch.Tensor
+    inv_distance: torch.Tensor | None = None  # "near": (K,) 1 / distance from ``centre`` (0: a distant light)
+    centre: torch.Tensor | None = None  # "near": (3,) the point the directions and irradiances refer to
 
     def tensors(self) -> list[torch.Tensor]:
-        return [self.vec, self.log_intensity, self.sh]
+        return [self.vec, self.log_intensity, self.sh] + ([self.inv_distance] if self.kind == "near" else [])
+
+    def detached(self) -> "LightParams":
+        """A copy of these lights (their own tensors) that carries no gradient."""
+        return LightParams(self.kind, *(t.detach().clone() for t in self.tensors()[:3]),
+                           None if self.inv_distance is None else self.inv_distance.detach().clone(), self.centre)
 
     def directions(self) -> torch.Tensor:
         return self.vec / self.vec.norm(dim=-1, keepdim=True).clamp(min=1e-8)
@@ -77,6 +88,11 @@ class LightParams:
         inten = self.log_intensity.exp()
         if self.kind == "directional":
             return self.directions()[:, None, :], inten[:, None, :]
+        if self.kind == "near":  # light at centre + direction / u; irradiance at the centre = inten
+            u = self.inv_distance.clamp(min=0.0)[:, None, None]
+            q = self.directions()[:, None, :] - u * (pos - self.centre)[None]
+            r2 = (q * q).sum(-1, keepdim=True).clamp(min=1e-6)
+            return q / r2.sqrt(), inten[:, None, :] / r2
         d = self.vec[:, None, :] - pos[None, :, :]
         r2 = (d * d).sum(-1, keepdim=True).clamp(min=1e-6)
         return d / r2.sqrt(), inten[:, None, :] / r2
