@@ -7,7 +7,8 @@
     python benchmarks/refine_check.py timing [--side 512]  # one fit at side^2, K=16: seconds, peak RSS (subprocess)
     python benchmarks/refine_check.py dome                 # a glossy and a matte textured dome under 16 known
                                                            # lights: as the check decides, and always fitted
-                                                           # (--roughness 0.4,0.9 --dome-light dir|point|env|dir+env)
+                                                           # (--roughness 0.4,0.9 --dome-light dir|point|env|dir+env,
+                                                           # --lamp-distance 3: point lamps' distance)
     python benchmarks/refine_check.py samples              # a flat wood sample and a bumpy plane, rendered with
                                                            # Mitsuba under 12 known lights: is the fit trusted?
     ... --set light_iters=0 --set prior_target=network     # any RefineSettings field (all but timing)
@@ -55,18 +56,40 @@ def _settings(args):
 
 
 def _check(res) -> str:
-    """The fit's check (fit.json ``linear``): residual / inliers / spread / solved fraction, then the Principled
-    fit's ambient share where the Lambertian part failed, and kept or fitted."""
+    """The fit's check (fit.json ``linear``): residual / inliers / spread / solved fraction, then where the
+    Lambertian part failed the near-lamp look (lamp distance in object radii, ambient share, loss against distant
+    lamps) and the Principled (glossy) look's ambient share, and kept or fitted."""
     lin = res.report.get("linear") or {}
     vals = [lin.get(k) for k in ("residual", "inliers", "spread", "solved_fraction")]
     text = " / ".join("-" if v is None else f"{v:.3f}" for v in vals)
-    second = lin.get("principled_fit")
+
+    def near(radii, share, ratio):
+        return (f", near: {'inf' if radii is None else f'{radii:.1f}'} radii, ambient {share:.3f}"
+                + ("" if ratio is None else f", loss ratio {ratio:.2f}"))
+
+    if lin.get("check") == "near lamps":
+        dist = res.report.get("light_distance_median")
+        text += near(None if dist is None else dist / _object_radius(res.maps.mask), res.report["ambient_share"],
+                     res.report.get("near_loss_ratio"))
+    for key, label in (("near_fit", "near"), ("principled_fit", "Principled")):
+        tried = lin.get(key)
+        if tried is None:
+            continue
+        if tried.get("ambient_share") is None:
+            text += f", {label}: solved {tried['solved_fraction']:.3f}"
+        elif key == "near_fit":
+            text += near(tried["light_distance_radii"], tried["ambient_share"], tried.get("loss_ratio"))
+        else:
+            text += f", Principled: ambient {tried['ambient_share']:.3f}"
     if lin.get("check") == "principled":
         text += f", Principled: ambient {res.report['ambient_share']:.3f}"
-    elif second is not None:
-        share, solved = second["ambient_share"], second["solved_fraction"]
-        text += (f", Principled: solved {solved:.3f}" if share is None else f", Principled: ambient {share:.3f}")
     return f"{text}: {'kept' if res.report['kept_network_maps'] else 'fitted'}"
+
+
+def _object_radius(mask) -> float:
+    from matcap.refine.fit import _object_radius as radius
+
+    return radius(mask)
 
 
 def _mean_err(n, gt, m) -> float:
@@ -241,8 +264,9 @@ def dome(args) -> None:
     models = _models()
     wood = load_maps(SHARED.parent / "textures" / "wood_table_worn", max_side=args.side)
     lights = S.known_lights(16, seed=3, max_angle_deg=45.0, kind="point" if args.dome_light == "point" else
-                            "directional")
-    print(f"Textured dome, {args.side}^2, 16 photos, light {args.dome_light}: normals vs the truth (mean deg); "
+                            "directional", distance=args.lamp_distance)
+    lamp = f" at {args.lamp_distance:g}" if args.dome_light == "point" else ""
+    print(f"Textured dome, {args.side}^2, 16 photos, light {args.dome_light}{lamp}: normals vs the truth (mean deg); "
           "light directions (median deg)")
     print("| roughness | network | fit (check decides) | light dir | kept? | fit, residual check off | light dir | "
           "check: residual / inliers / spread / solved (then the Principled pass) |")
@@ -345,8 +369,11 @@ def main(argv=None) -> int:
     ap.add_argument("--roughness", type=lambda v: [float(x) for x in v.split(",")], default=[0.4, 0.9],
                     help="dome roughness values, comma-separated (dome; default 0.4,0.9)")
     ap.add_argument("--dome-light", choices=("dir", "point", "env", "dir+env"), default="dir",
-                    help="dome: 16 directional lights plus a faint ambient (default), point lights 3 half-widths "
-                         "away instead, a turning environment map alone, or directional lights and the map at 0.3")
+                    help="dome: 16 directional lights plus a faint ambient (default), point lights instead "
+                         "(--lamp-distance), a turning environment map alone, or directional lights and the map at 0.3")
+    ap.add_argument("--lamp-distance", type=float, default=3.0,
+                    help="dome with --dome-light point: the lamps' distance from the dome's centre in half-widths of "
+                         "the frame (the dome's radius is 0.94 of them; default 3)")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="a RefineSettings field for the fit (repeatable), e.g. light_iters=0")

@@ -530,17 +530,21 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
                 tried[look] = {"ambient_share": share, "solved_fraction": lin2.get("solved_fraction")}
             if ok:
                 rep["linear"] = {**lin2, "check": "near lamps" if look == "near" else "principled",
-                                 "reason_lambertian": lin["reason"]}
+                                 "reason_lambertian": lin["reason"], **_looks(tried, but=look),
+                                 **({"reason_near": whys[-1]} if whys else {})}
                 return second
             whys.append(why)
         if whys:
             first.report["linear"] = {**lin, "reason": f"{lin['reason']}; without that part of the check: "
-                                                       + "; ".join(w for w in whys if w),
-                                      **{("near_fit" if k == "near" else "principled_fit"): v
-                                         for k, v in tried.items()}}
+                                                       + "; ".join(w for w in whys if w), **_looks(tried)}
         return first
     finally:
         torch.use_deterministic_algorithms(was[0], warn_only=was[1])
+
+
+def _looks(tried: dict, but: str | None = None) -> dict:
+    """fit.json ``linear`` keys of the second looks that were tried (``near_fit``, ``principled_fit``)."""
+    return {("near_fit" if k == "near" else "principled_fit"): v for k, v in tried.items() if k != but}
 
 
 def _object_radius(mask: np.ndarray) -> float:
@@ -648,9 +652,10 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
             loss = per.mean()
             loss.backward()
             opt.step()
-            if lights.kind == "near":  # a negative inverse distance would put the lamp behind the object
-                with torch.no_grad():
+            if lights.kind == "near":  # a negative inverse distance, or a direction behind the framing plane,
+                with torch.no_grad():  # would put the lamp where it lights nothing the camera sees
                     lights.inv_distance.clamp_(min=0.0)
+                    lights.vec[:, 2].clamp_(min=1e-3)
             last["data"] = float(data.detach().mean())
             bar.step(label, float(loss.detach()))
         for t in lights.tensors():
