@@ -310,6 +310,7 @@ class RelightPlan:
     size: object = None
     seed: int = 0
     tonemap_mode: str = "aces"
+    per_pixel: bool = False  # at the maps' own size, one texel per pixel (the photo fit's model: --lights/--image)
 
     @property
     def names(self) -> list[str]:
@@ -363,7 +364,7 @@ def plan(
     names = [name for name, _, _ in jobs]
     if len(set(names)) != len(names):
         raise MatcapError("two environment maps have the same name; rename one")
-    return RelightPlan(jobs, spp, size, seed, tonemap_mode)
+    return RelightPlan(jobs, spp, size, seed, tonemap_mode, per_pixel=lights is not None or image is not None)
 
 
 def _targets(out: Path, names: Sequence[str], overwrite: bool) -> list[Path]:
@@ -386,6 +387,8 @@ def render_plan(maps: MaterialMaps, how: RelightPlan, *, out=None, overwrite: bo
     from renderers.relight import mask_coverage, render
 
     width, height = fit_size(maps, how.size)
+    # re-rendering an input: at the maps' own size each pixel shows its texel, as the photo fit modelled it
+    texels = "nearest" if how.per_pixel and (height, width) == tuple(maps.shape) else "bilinear"
     targets = _targets(Path(out), how.names, overwrite) if out is not None else []
     images = []
     iterator = how.jobs
@@ -396,7 +399,8 @@ def render_plan(maps: MaterialMaps, how: RelightPlan, *, out=None, overwrite: bo
     for i, (name, lights, pixels) in enumerate(iterator):
         with warnings.catch_warnings():
             warnings.simplefilter("always")
-            img = render(maps, lights, pixels, spp=how.spp, size=(width, height), seed=how.seed)
+            img = render(maps, lights, pixels, spp=how.spp, size=(width, height), seed=how.seed,
+                         texture_filter=texels)
         images.append(img)
         if out is not None:
             write_render(targets[i], img, mask_coverage(maps.mask, width, height), how.tonemap_mode)

@@ -34,13 +34,16 @@ def _bitmap(arr: np.ndarray):
     return mi.Bitmap(arr)
 
 
-def _texture(arr: np.ndarray, to_uv) -> dict:
-    """A raw (no sRGB decoding) bilinear bitmap texture, clamped at the borders."""
+TEXTURE_FILTERS = ("bilinear", "nearest")
+
+
+def _texture(arr: np.ndarray, to_uv, texture_filter: str = "bilinear") -> dict:
+    """A raw (no sRGB decoding) bitmap texture (bilinear or nearest texel), clamped at the borders."""
     return {
         "type": "bitmap",
         "bitmap": _bitmap(arr),
         "raw": True,
-        "filter_type": "bilinear",
+        "filter_type": texture_filter,
         "wrap_mode": "clamp",
         "to_uv": to_uv,
     }
@@ -67,19 +70,26 @@ def prepare_maps(maps: MaterialMaps) -> MaterialMaps:
     )
 
 
-def surface_bsdf(maps: MaterialMaps, specular: float = DEFAULT_SPECULAR) -> dict:
-    """``normalmap(principled(base_color, roughness, metallic))`` for maps prepared by :func:`prepare_maps`."""
+def surface_bsdf(maps: MaterialMaps, specular: float = DEFAULT_SPECULAR, texture_filter: str = "bilinear") -> dict:
+    """``normalmap(principled(base_color, roughness, metallic))`` for maps prepared by :func:`prepare_maps`.
+
+    ``texture_filter``: "bilinear" (smooth at any output size) or "nearest" (one texel per pixel at the maps' own
+    size: exactly the per-pixel model of the photo fit, :mod:`matcap.refine.model`, whose normals may change a lot
+    from one pixel to the next; between two such normals the bilinear blend shows highlights that neither has)."""
+    if texture_filter not in TEXTURE_FILTERS:
+        raise ValueError(f"texture_filter must be one of {TEXTURE_FILTERS}, got {texture_filter!r}")
     to_uv = plane_to_uv()
+    tex = lambda arr: _texture(arr, to_uv, texture_filter)  # noqa: E731
     principled = {
         "type": "principled",
-        "base_color": _texture(maps.base_color, to_uv),
-        "roughness": _texture(maps.roughness[..., None], to_uv),
-        "metallic": _texture(maps.metallic[..., None], to_uv),
+        "base_color": tex(maps.base_color),
+        "roughness": tex(maps.roughness[..., None]),
+        "metallic": tex(maps.metallic[..., None]),
         "specular": float(specular),
     }
     return {
         "type": "normalmap",
-        "normalmap": _texture((maps.normal + 1.0) * 0.5, to_uv),
+        "normalmap": tex((maps.normal + 1.0) * 0.5),
         "bsdf": principled,
     }
 
@@ -104,12 +114,13 @@ def build_scene(
     seed: int = 0,
     specular: float = DEFAULT_SPECULAR,
     cull_back: bool = True,
+    texture_filter: str = "bilinear",
 ) -> dict:
     """The Mitsuba scene dict that shows ``maps`` on the framing plane under ``lights``.
 
     ``envmaps`` maps an :class:`EnvironmentLight`'s ``source`` to its (H, W, 3) linear equirectangular pixels.
-    ``size`` is the film's (width, height); default: the maps' size. Pure apart from building ``mi.Bitmap``s
-    (call ``renderers.variant.choose_variant()`` first).
+    ``size`` is the film's (width, height); default: the maps' size; ``texture_filter``: :func:`surface_bsdf`'s.
+    Pure apart from building ``mi.Bitmap``s (call ``renderers.variant.choose_variant()`` first).
     """
     if not lights:
         raise ValueError("relighting needs at least one light")
@@ -124,7 +135,7 @@ def build_scene(
         "type": "scene",
         "integrator": {"type": "direct", "emitter_samples": 1, "bsdf_samples": 1},
         "sensor": ortho_sensor(width, height, spp, seed=seed),
-        "surface": plane_shape(w, h, surface_bsdf(prepared, specular)),
+        "surface": plane_shape(w, h, surface_bsdf(prepared, specular, texture_filter)),
     }
     for i, light in enumerate(lights):
         pixels = None
@@ -158,14 +169,17 @@ def render(
     seed: int = 0,
     *,
     specular: float = DEFAULT_SPECULAR,
+    texture_filter: str = "bilinear",
 ) -> np.ndarray:
-    """Render ``maps`` under ``lights``: (H, W, 3) linear float32 radiance, black where ``maps.mask`` is False."""
+    """Render ``maps`` under ``lights``: (H, W, 3) linear float32 radiance, black where ``maps.mask`` is False
+    (``texture_filter``: :func:`surface_bsdf`'s)."""
     import mitsuba as mi
 
     from renderers.variant import choose_variant, render_array
 
     choose_variant()
-    scene_dict = build_scene(maps, lights, envmaps, spp, size, seed=seed, specular=specular)
+    scene_dict = build_scene(maps, lights, envmaps, spp, size, seed=seed, specular=specular,
+                             texture_filter=texture_filter)
     scene = mi.load_dict(scene_dict)
     img = render_array(scene, spp=spp, seed=seed)[..., :3]
     height, width = img.shape[:2]

@@ -141,3 +141,38 @@ def test_image_without_a_lights_file(tmp_path, capsys, sphere_maps):
     assert main(["relight", str(tmp_path / "R"), "--image", "0", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "lights.json: no such file" in err[0]
+
+
+def test_relit_input_of_a_detailed_normal_map_matches_the_fit_model(tmp_path):
+    """Fitted normals can change a lot from one pixel to the next. Re-rendering an input (at the maps' own size)
+    shows each pixel's own texel, as the fit modelled it, so the closed loop reproduces the fit's re-render:
+    the bilinear blend of two neighbouring normals would light highlights that neither has (measured on a fitted
+    near-lit dome: 4.7 dB against the photo, 21.3 dB with one texel per pixel, the fit's own 21.3). Here: median
+    0.06 %, 99th percentile 1.7 % from the fit's model; blended (any other relight): 7.6 % and 354 %."""
+    from matcap.results import read_result, write_result
+    from scenes.materialmaps import MaterialMaps
+
+    rng = np.random.default_rng(0)
+    size = 32
+    n = rng.normal(0.0, 0.35, (size, size, 3))
+    n[..., 2] = 1.0
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    mask = np.ones((size, size), bool)
+    maps = MaterialMaps(normal=n.astype(np.float32), mask=mask, base_color=np.full((size, size, 3), 0.5, np.float32),
+                        roughness=np.full((size, size), 0.15, np.float32), metallic=np.zeros((size, size), np.float32))
+    folder = tmp_path / "R"
+    write_result(maps, folder)
+    entry = {"index": 0, "file": "a.png", "kind": "point", "position": [0.3, -0.2, 2.5], "intensity": [8.0, 8.0, 8.0],
+             "sh": np.zeros((9, 3)).tolist()}
+    write_lights(folder / "lights.json", [entry])
+    stored = read_result(folder)
+    assert main(["relight", str(folder), "--image", "0", "--spp", "4", "--quiet"]) == 0
+    img = read_exr(folder / "relight_input_0.exr")
+    ours = _torch_render(stored, entry)
+    rel = np.abs(img - ours).mean(-1) / np.maximum(ours.mean(-1), 0.02)
+    assert np.median(rel) < 0.01 and np.percentile(rel, 99) < 0.05, (np.median(rel), np.percentile(rel, 99))
+    assert main(["relight", str(folder), "--point", "0.3,-0.2,2.5", "--intensity", "8", "--spp", "4", "--quiet",
+                 "--out", str(tmp_path / "free")]) == 0  # any other relight blends the texels (smooth at any size)
+    (exr,) = (tmp_path / "free").glob("relight_point_*.exr")
+    blended = np.abs(read_exr(exr) - ours).mean(-1) / np.maximum(ours.mean(-1), 0.02)
+    assert np.percentile(blended, 99) > 1.0, np.percentile(blended, 99)
