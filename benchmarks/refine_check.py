@@ -68,9 +68,8 @@ def _check(res) -> str:
                 + ("" if ratio is None else f", loss ratio {ratio:.2f}"))
 
     if lin.get("check") == "near lamps":
-        dist = res.report.get("light_distance_median")
-        text += near(None if dist is None else dist / _object_radius(res.maps.mask), res.report["ambient_share"],
-                     res.report.get("near_loss_ratio"))
+        found = res.report["near_lamps"]
+        text += near(found["light_distance_radii"], found["ambient_share"], found["loss_ratio"])
     for key, label in (("near_fit", "near"), ("principled_fit", "Principled")):
         tried = lin.get(key)
         if tried is None:
@@ -84,12 +83,6 @@ def _check(res) -> str:
     if lin.get("check") == "principled":
         text += f", Principled: ambient {res.report['ambient_share']:.3f}"
     return f"{text}: {'kept' if res.report['kept_network_maps'] else 'fitted'}"
-
-
-def _object_radius(mask) -> float:
-    from matcap.refine.fit import _object_radius as radius
-
-    return radius(mask)
 
 
 def _mean_err(n, gt, m) -> float:

@@ -99,8 +99,12 @@ def test_near_lamps(near_lit, model):
     assert np.median(errs) < 3.0, errs
     dist = np.median([np.linalg.norm(e["position"]) for e in res.lights])
     assert 2.5 < dist < 3.6 and res.report["light_distance_median"] == pytest.approx(dist, rel=0.05), dist
+    found = res.report["near_lamps"]  # the near-lamp check's findings, made before the per-pixel fit
+    assert found["light_distance_radii"] < 5.0 and found["ambient_share"] < 0.2
     if model == "directional":
-        assert res.report["near_loss_ratio"] < 0.8
+        assert found["loss_ratio"] < 0.8
+    else:
+        assert found["loss_ratio"] is None  # --refine-light point: only the ambient counts
 
 
 def test_light_variation_flags_a_fixed_light():

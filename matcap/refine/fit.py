@@ -497,32 +497,17 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
         whys, tried = [], {}
         for look in looks:
             second = _refine(torch, images, maps, s, progress, lambertian=False, near=look == "near",
-                             compare=look == "near" and not point)
-            if isinstance(second, dict):  # its check failed before any fit (the same for every look)
+                             gate=look == "near")
+            if isinstance(second, dict):  # the check, or the near look's verdict, failed before the per-pixel fit
                 whys.append(second.get("reason"))
-                tried[look] = {"solved_fraction": second.get("solved_fraction")}
-                break
+                tried[look] = second.get("near") or {"solved_fraction": second.get("solved_fraction")}
+                if "near" in second:
+                    continue  # the lamps are not near: the glossy look may still apply
+                break  # the check itself failed: the same for every look
             rep = second.report
             lin2, share = rep["linear"], rep["ambient_share"]
             if look == "near":
-                dist = rep.get("light_distance_median")
-                radii = None if dist is None else dist / _object_radius(maps.mask)
-                ratio = rep.get("near_loss_ratio")
-                if not point and (radii is None or radii > s.near_distance):
-                    why = (f"the lamps came out {'infinitely far' if radii is None else f'{radii:.1f} object radii'}"
-                           f" away (near from {s.near_distance:g})")
-                elif share > s.near_ambient:
-                    why = (f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (trusted up to "
-                           f"{s.near_ambient:.0%}): not one lamp per photo")
-                elif not point and ratio > s.near_loss_ratio and share > s.near_dark:
-                    why = (f"the lamps' distances explain little (the fit's loss {ratio:.0%} of distant lamps', "
-                           f"trusted up to {s.near_loss_ratio:.0%}) under a fixed ambient of {share:.0%} (trusted "
-                           f"whatever the loss up to {s.near_dark:.0%})")
-                else:
-                    why = None
-                ok = why is None
-                tried[look] = {"ambient_share": share, "light_distance_radii": None if radii is None else
-                               round(radii, 2), "loss_ratio": ratio, "solved_fraction": lin2.get("solved_fraction")}
+                ok, why = True, None
             else:
                 ok = share <= s.trust_ambient
                 why = (f"the Principled fit needed a fixed ambient of {share:.0%} of the light (trusted up to "
@@ -542,6 +527,25 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
         torch.use_deterministic_algorithms(was[0], warn_only=was[1])
 
 
+def _near_verdict(found: dict, s: RefineSettings) -> str | None:
+    """Why a near-lamp fit's lamps may not move the maps (one line), or None (:class:`RefineSettings` ``near_*``).
+    ``found``: light_distance_radii (None: infinitely far), ambient_share, loss_ratio (None: not measured, with
+    ``light_model`` "point", where only the ambient counts)."""
+    radii, share, ratio = found["light_distance_radii"], found["ambient_share"], found["loss_ratio"]
+    point = s.light_model == "point"
+    if not point and (radii is None or radii > s.near_distance):
+        return (f"the lamps came out {'infinitely far' if radii is None else f'{radii:.1f} object radii'} away "
+                f"(near from {s.near_distance:g})")
+    if share > s.near_ambient:
+        return (f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (trusted up to "
+                f"{s.near_ambient:.0%}): not one lamp per photo")
+    if not point and ratio is not None and ratio > s.near_loss_ratio and share > s.near_dark:
+        return (f"the lamps' distances explain little (the fit's loss {ratio:.0%} of distant lamps', trusted up to "
+                f"{s.near_loss_ratio:.0%}) under a fixed ambient of {share:.0%} (trusted whatever the loss up to "
+                f"{s.near_dark:.0%})")
+    return None
+
+
 def _looks(tried: dict, but: str | None = None) -> dict:
     """fit.json ``linear`` keys of the second looks that were tried (``near_fit``, ``principled_fit``)."""
     return {("near_fit" if k == "near" else "principled_fit"): v for k, v in tried.items() if k != but}
@@ -553,11 +557,11 @@ def _object_radius(mask: np.ndarray) -> float:
 
 
 def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool = True, near: bool = False,
-            compare: bool = False) -> RefineResult | dict:
+            gate: bool = False) -> RefineResult | dict:
     """One fit; ``lambertian`` False leaves the residual / inliers part of the check out (:func:`refine`) and
     returns only the check's report (a dict) where the rest of it fails; ``near``: near lights (the distant
-    ones, then their distances); ``compare``: also fit the distant ones as long again, and report the near fit's
-    data term over theirs (``near_loss_ratio``)."""
+    ones, then their distances); ``gate``: the near-lamp check (:func:`_near_verdict`) decides after the light
+    fit, before the per-pixel one; where it fails, only its report (a dict with ``reason`` and ``near``)."""
     if s.light_model not in ("directional", "point"):
         raise MatcapError(f"light model must be 'directional' or 'point', got {s.light_model!r}")
     t_start = time.perf_counter()
@@ -663,15 +667,27 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         return lights
 
     light_iters = s.light_iters if trusted else s.kept_light_iters
-    bar.add_total(light_iters - s.light_iters + (s.light_iters if near and compare else 0))
+    bar.add_total(light_iters - s.light_iters + (s.light_iters if near and gate and s.light_model != "point" else 0))
     lights = joint(lights, light_iters, "lights")
-    near_gain = None
+    near_found = None
     if near:  # the lamps' distances, from the distant solution
+        compare = gate and s.light_model != "point"
         if compare:  # as many more steps with the lamps kept distant: what the distances gain is measured against
             joint(lights.detached(), s.light_iters, "distant lights")
             distant = last["data"]
         lights = joint(_to_near(torch, lights, _centre(torch, mask).to(device)), s.light_iters, "point lights")
-        near_gain = last["data"] / max(distant, 1e-12) if compare else None
+        if gate:
+            with torch.no_grad():
+                share_l = ambient_share(torch, lights, prob.pos, prob.ns)
+            dist = _median_distance(lights)
+            near_found = {"ambient_share": round(share_l, 4),
+                          "light_distance_radii": None if dist is None else round(dist / _object_radius(mask), 2),
+                          "loss_ratio": round(last["data"] / max(distant, 1e-12), 4) if compare else None,
+                          "solved_fraction": (linear_report or {}).get("solved_fraction")}
+            why = _near_verdict(near_found, s)
+            if why is not None:
+                bar.close()
+                return {**(linear_report or {}), "reason": why, "near": near_found}
     timings["lights_s"] = time.perf_counter() - t0
 
     # ---- 2. per pixel, lights fixed: half size, then full size
@@ -770,7 +786,8 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         "kept_network_maps": not trusted,
         "ambient_share": round(share, 4),
         **({"light_distance_median": _median_distance(lights)} if near else {}),
-        **({"near_loss_ratio": round(near_gain, 4)} if near_gain is not None else {}),
+        **({"near_lamps": near_found} if near_found is not None else {}),
+
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
