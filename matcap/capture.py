@@ -746,8 +746,12 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     result = refine(images, maps, s, progress=progress)
     if result.warning:
         print(f"warning: {result.warning}", file=sys.stderr)
+    lin = result.report.get("linear") or {}
+    radii = (result.report.get("near_lamps") or {}).get("light_distance_radii")
+    if lin.get("check") == "near lamps" and radii is not None:  # (--refine-light point may keep them far)
+        print(f"note: the lamps were near the object (median {radii:.1f} object radii away): fitted as point lights, "
+              f"their positions in lights.json", file=sys.stderr)
     if result.report.get("kept_network_maps"):
-        lin = result.report["linear"] or {}
         hint = ""
         if lin.get("lambertian_only") and s.light_model != "point":
             tips = ([f"a glossy object under a far lamp: try {flags[0]}"] if s.trust_ambient <= 0 else []) + (

@@ -107,6 +107,18 @@ def test_near_lamps(near_lit, model):
         assert found["loss_ratio"] is None  # --refine-light point: only the ambient counts
 
 
+def test_near_lamps_are_named_in_one_line(near_lit, capsys):
+    """`matcap capture` / `matcap refine` say in one line that the lamps were found near, and how near."""
+    from matcap.capture import refine_maps
+
+    truth, lights, photos, start = near_lit
+    names = [f"p{i}.png" for i in range(len(photos))]
+    s = RefineSettings(light_iters=250, coarse_iters=0, fine_iters=10)
+    refine_maps(start, photos, names, "linear", s)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "lamps were near the object" in err[0] and "object radii away" in err[0], err
+
+
 def test_light_variation_flags_a_fixed_light():
     rng = np.random.default_rng(0)
     mask = np.ones((20, 20), bool)
