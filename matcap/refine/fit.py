@@ -64,7 +64,7 @@ class RefineSettings:
     variation_threshold: float = 0.08  # per-pixel light variation (std / mean over photos) below this is weak
     fit_brdf: bool = True  # False: only normals are refined (base colour still is: it carries the albedo)
     light_init: str = "linear"  # "linear": Lambertian factorization, its ambiguity fixed by the network normals
-    # and the occluding contour (matcap.refine.linear; directional lights only: point lights start as "network");
+    # and the occluding contour (matcap.refine.linear; near lamps start from its distant solution);
     # "network": least squares on the network's normals alone (the fit before the factorization existed)
     contour_weight: float = 1.0  # weight of the occluding-contour normals against the network's in "linear"
     contour_nz: float = 0.1  # n_z given to the contour pixels' normals (a pixel centre lies inside the contour)
@@ -93,8 +93,9 @@ class RefineSettings:
     trust_ambient: float = 0.0  # > 0 (``--refine-glossy`` sets GLOSSY_TRUST_AMBIENT): where only the residual /
     # inliers part of the check fails (a glossy object: its highlights are no Lambertian's), the fit runs anyway and
     # is kept if its fixed ambient gives at most this share of the object's irradiance (one lamp per photo, far
-    # away, in a dark room). Off by default: lamps about 3 object radii away pass it and ruin the maps (a glossy
-    # dome 3.71 -> 12.3 degrees), as does a turning environment map (4.19 -> 6.15); where it holds it gains
+    # away, in a dark room). Off by default: a turning environment map passes it and ruins the maps (a glossy dome
+    # 4.19 -> 6.19; lamps about 3 object radii away did too, 3.71 -> 12.3, before the near-lamp check, which runs
+    # first, took them); where it holds it gains
     # (synthetic split 18.52 -> 18.24, glossy domes 3.80 -> 1.22, 3.99 -> 2.3). docs/refine.md, session 13
     near_check: bool = True  # where only the residual / inliers part of the check fails, fit lamps whose
     # distance the fit finds (a hand-held lamp near the object: its falloff is no distant light's) and keep that
@@ -476,9 +477,9 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
 
     Where the photos fail only the Lambertian part of the check (residual / inliers: a near lamp's falloff, a glossy
     object, or light that is not one lamp per photo), the fit runs again without it, with lights whose distance
-    it finds (``near_check``), and is kept if its lamps came out within ``near_distance`` object radii and its fixed
-    ambient gives at most ``near_ambient`` of the object's irradiance (:func:`ambient_share`); then (with
-    ``trust_ambient`` > 0) with distant lights, kept if the share is at most ``trust_ambient``. Otherwise the first
+    it finds (``near_check``), and is kept where :func:`_near_verdict` finds the lamps near and explaining the
+    photos (decided after the light fit); then (with ``trust_ambient`` > 0) with distant lights, kept if its fixed
+    ambient gives at most ``trust_ambient`` of the object's irradiance (:func:`ambient_share`). Otherwise the first
     pass's kept maps are returned, with every reason.
     """
     import torch
@@ -667,11 +668,11 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         return lights
 
     light_iters = s.light_iters if trusted else s.kept_light_iters
-    bar.add_total(light_iters - s.light_iters + (s.light_iters if near and gate and s.light_model != "point" else 0))
+    compare = near and gate and s.light_model != "point"  # the near-lamp check's loss ratio needs the distant run
+    bar.add_total(light_iters - s.light_iters + (s.light_iters if compare else 0))
     lights = joint(lights, light_iters, "lights")
     near_found = None
     if near:  # the lamps' distances, from the distant solution
-        compare = gate and s.light_model != "point"
         if compare:  # as many more steps with the lamps kept distant: what the distances gain is measured against
             joint(lights.detached(), s.light_iters, "distant lights")
             distant = last["data"]
@@ -773,7 +774,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         "psnr_db": [round(p, 3) for p in psnr],
         "psnr_db_mean": round(float(np.mean(psnr)), 3),
         "residual_mean": round(float(np.nanmean(residual)), 5),
-        "iterations": {"lights": light_iters + (s.light_iters if near else 0), **iters_done},
+        "iterations": {"lights": light_iters + (s.light_iters * (2 if compare else 1) if near else 0), **iters_done},
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(float(n_change.mean()), 3),
