@@ -195,3 +195,21 @@ def test_a_glossy_textured_dome_is_fitted():
     assert before > 5.0 and after < 2.5, (before, after)
     errs = [_angle(l.direction, e["direction"]) for l, e in zip(lights, res.lights)]
     assert np.median(errs) < 3.0, errs
+
+
+@pytest.mark.parametrize("radii, share, ratio, model, needle", [
+    (3.2, 0.036, 0.50, "directional", None),  # a near-lit glossy dome (measured)
+    (6.2, 0.007, 0.89, "directional", None),  # lamps at 6.4 radii, glossy: its loss barely moves, the room is dark
+    (10.7, 0.080, 0.97, "directional", "10.7 object radii"),  # synthetic scene 20 (directional + environment)
+    (None, 0.004, 1.05, "directional", "infinitely far"),
+    (5.0, 0.30, 0.50, "directional", "ambient of 30%"),
+    (5.0, 0.08, 0.97, "directional", "explain little"),
+    (None, 0.10, None, "point", None),  # --refine-light point: the lamps may be far, only the ambient counts
+    (2.0, 0.25, None, "point", "ambient of 25%"),
+])
+def test_near_lamp_verdict(radii, share, ratio, model, needle):
+    from matcap.refine.fit import _near_verdict
+
+    found = {"light_distance_radii": radii, "ambient_share": share, "loss_ratio": ratio}
+    why = _near_verdict(found, RefineSettings(light_model=model))
+    assert (why is None) if needle is None else (needle in why), why
