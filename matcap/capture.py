@@ -764,7 +764,8 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     r = result.report
     refined.meta["refine"] = {
         "psnr_db_mean": r["psnr_db_mean"], "normal_change_deg_mean": r["normal_change_deg_mean"],
-        "light_model": s.light_model, "seconds": r["timings"]["total_s"],
+        "light_model": "point" if lin.get("check") == "near lamps" else s.light_model,  # what was fitted
+        "seconds": r["timings"]["total_s"],
         "weak_light_variation_fraction": r["light_variation"]["weak_fraction"],
         "kept_network_maps": r["kept_network_maps"],
         "files": ["lights.json", "fit.json", "residual.png", "light_variation.png"],

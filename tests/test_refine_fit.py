@@ -114,9 +114,10 @@ def test_near_lamps_are_named_in_one_line(near_lit, capsys):
     truth, lights, photos, start = near_lit
     names = [f"p{i}.png" for i in range(len(photos))]
     s = RefineSettings(light_iters=250, coarse_iters=0, fine_iters=10)
-    refine_maps(start, photos, names, "linear", s)
+    refined, _ = refine_maps(start, photos, names, "linear", s)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "lamps were near the object" in err[0] and "object radii away" in err[0], err
+    assert refined.meta["refine"]["light_model"] == "point"  # capture.json says what was fitted
 
 
 def test_light_variation_flags_a_fixed_light():
