@@ -269,7 +269,7 @@ def dome(args) -> None:
         if args.dome_light in ("dir", "point"):
             photos = S.render_capture(truth, lights, ambient=0.02, spp=32)
         else:
-            photos = _env_photos(truth, lights if args.dome_light == "dir+env" else None)
+            photos = _env_photos(truth, lights if args.dome_light == "dir+env" else None, args.env_fixed)
         maps = estimate(photos, truth.mask, models=models, seed=0)
         s = _settings(args)
         checked = refine(photos, maps, s)
@@ -291,9 +291,10 @@ def _towards(light) -> np.ndarray:
     return np.asarray(getattr(light, "direction", None) or light.position, float)
 
 
-def _env_photos(truth, lights=None):
+def _env_photos(truth, lights=None, fixed: bool = False):
     """16 photos of ``truth`` under Blender's studio, interior, courtyard and forest maps in turn, turned by 22.5
-    degrees from photo to photo; with ``lights``, each photo's directional light plus the map at 0.3."""
+    degrees from photo to photo (``fixed``: the studio map alone, never turned: a room's light); with ``lights``,
+    each photo's directional light plus the map at 0.3."""
     from matcap.refine import synthetic as S
     from matcap.relight import load_envmap
     from renderers.relight import render
@@ -304,7 +305,8 @@ def _env_photos(truth, lights=None):
     full = S.extend_maps(truth)
     photos = []
     for i in range(16):
-        e = EnvironmentLight(source=names[i % 4], rotation_deg=22.5 * i, scale=1.0 if lights is None else 0.3)
+        e = EnvironmentLight(source=names[0 if fixed else i % 4], rotation_deg=0.0 if fixed else 22.5 * i,
+                             scale=1.0 if lights is None else 0.3)
         img = render(full, [e] if lights is None else [lights[i], e], env, spp=32, seed=i)
         photos.append(np.where(truth.mask[..., None], img, 0.0).astype(np.float32))
     return photos
@@ -364,6 +366,8 @@ def main(argv=None) -> int:
     ap.add_argument("--dome-light", choices=("dir", "point", "env", "dir+env"), default="dir",
                     help="dome: 16 directional lights plus a faint ambient (default), point lights instead "
                          "(--lamp-distance), a turning environment map alone, or directional lights and the map at 0.3")
+    ap.add_argument("--env-fixed", action="store_true",
+                    help="dome with --dome-light env or dir+env: one map (studio) that never turns, as a room's light")
     ap.add_argument("--lamp-distance", type=float, default=3.0,
                     help="dome with --dome-light point: the lamps' distance from the dome's centre in half-widths of "
                          "the frame (the dome's radius is 0.94 of them; default 3)")
