@@ -461,10 +461,6 @@ def _centre(torch, mask: np.ndarray):
     return plane_positions(torch.from_numpy(rows), torch.from_numpy(cols), *mask.shape).mean(0)
 
 
-def _adam(torch, params, lr):
-    return torch.optim.Adam(params, lr=lr)
-
-
 # ----------------------------------------------------------------------------------------------- main
 
 
@@ -671,16 +667,16 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     compare = near and gate and s.light_model != "point"  # the near-lamp check's loss ratio needs the distant run
     bar.add_total(light_iters - s.light_iters + (s.light_iters if compare else 0))
     lights = joint(lights, light_iters, "lights")
-    near_found = None
+    near_found = dist = None
     if near:  # the lamps' distances, from the distant solution
         if compare:  # as many more steps with the lamps kept distant: what the distances gain is measured against
             joint(lights.detached(), s.light_iters, "distant lights")
             distant = last["data"]
         lights = joint(_to_near(torch, lights, _centre(torch, mask).to(device)), s.light_iters, "point lights")
+        dist = _median_distance(lights)
         if gate:
             with torch.no_grad():
                 share_l = ambient_share(torch, lights, prob.pos, prob.ns)
-            dist = _median_distance(lights)
             near_found = {"ambient_share": round(share_l, 4),
                           "light_distance_radii": None if dist is None else round(dist / _object_radius(mask), 2),
                           "loss_ratio": round(last["data"] / max(distant, 1e-12), 4) if compare else None,
@@ -786,7 +782,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
             "inliers": round(linear.inliers, 4), "spread": round(linear.spread, 5), "ambiguity": s.ambiguity})},
         "kept_network_maps": not trusted,
         "ambient_share": round(share, 4),
-        **({"light_distance_median": _median_distance(lights)} if near else {}),
+        **({"light_distance_median": dist} if near else {}),
         **({"near_lamps": near_found} if near_found is not None else {}),
 
         "timings": {k: round(v, 3) for k, v in timings.items()},
