@@ -60,8 +60,8 @@ def register(sub) -> None:
                         "distance the fit finds, always")
     p.add_argument("--refine-glossy", action="store_true",
                    help="the object is glossy and each photo has one lamp, far away, in a dark room: fit it even "
-                        "where a matte surface does not explain the photos (not for lamps within a few object "
-                        "sizes; docs/refine.md)")
+                        "where a matte surface does not explain the photos (near lamps are checked first; "
+                        "docs/refine.md)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
     p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")

@@ -8,8 +8,9 @@ at every pixel. One photo k at pixel p::
 
 ``l_k(p)``/``E_k(p)``: a directional light (unit direction, RGB irradiance), a point light (position on the
 framing plane's world units, RGB intensity / distance^2), or a near light: a point light given by its direction and
-irradiance at the object's centre and its inverse distance (0: the directional light; what the fit optimises). The ambient term is the diffuse part of the Principled
-BSDF under an order-2 SH radiance (Ramamoorthi & Hanrahan 2001 irradiance; its specular part is left out).
+irradiance at the object's centre and its inverse distance (0: the directional light; what the fit optimises).
+The ambient term is the diffuse part of the Principled BSDF under an order-2 SH radiance (Ramamoorthi & Hanrahan
+2001 irradiance; its specular part is left out).
 """
 from __future__ import annotations
 
