@@ -134,7 +134,7 @@ def uw(args) -> None:
           f"squares with the true lights (mean deg); light directions vs lights.txt (median deg); re-render PSNR; "
           f"held-out: refine on 11, fit only the 12th photo's light with the maps frozen")
     print("| capture | network | refined | light dir median | light dir max | PSNR dB | held-out PSNR dB | "
-          "refine s | check: residual / inliers / spread / solved (then the Principled pass) |")
+          "refine s | check: residual / inliers / spread / solved (then the near-lamp and Principled looks) |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []
     for name in names:
@@ -262,7 +262,7 @@ def dome(args) -> None:
     print(f"Textured dome, {args.side}^2, 16 photos, light {args.dome_light}{lamp}: normals vs the truth (mean deg); "
           "light directions (median deg)")
     print("| roughness | network | fit (check decides) | light dir | kept? | fit, residual check off | light dir | "
-          "check: residual / inliers / spread / solved (then the Principled pass) |")
+          "check: residual / inliers / spread / solved (then the near-lamp and Principled looks) |")
     print("|---:|---:|---:|---:|---|---:|---:|---|")
     for rough in args.roughness:
         truth = S.textured_dome(args.side, wood, roughness=rough)
@@ -300,12 +300,13 @@ def _env_photos(truth, lights=None, fixed: bool = False):
     from renderers.relight import render
     from scenes.lights import EnvironmentLight
 
-    names = ["blender_studio", "blender_interior", "blender_courtyard", "blender_forest"]
-    env = {n: load_envmap(SHARED.parent / "envmaps" / f"{n}.exr") for n in names}
+    names = ["blender_studio"] if fixed else ["blender_studio", "blender_interior", "blender_courtyard",
+                                              "blender_forest"]
+    env = {n: load_envmap(SHARED.parent / "envmaps" / f"{n}.exr") for n in names}  # only the maps it shows
     full = S.extend_maps(truth)
     photos = []
     for i in range(16):
-        e = EnvironmentLight(source=names[0 if fixed else i % 4], rotation_deg=0.0 if fixed else 22.5 * i,
+        e = EnvironmentLight(source=names[i % len(names)], rotation_deg=0.0 if fixed else 22.5 * i,
                              scale=1.0 if lights is None else 0.3)
         img = render(full, [e] if lights is None else [lights[i], e], env, spp=32, seed=i)
         photos.append(np.where(truth.mask[..., None], img, 0.0).astype(np.float32))
