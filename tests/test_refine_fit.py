@@ -201,7 +201,10 @@ def test_a_glossy_textured_dome_is_fitted():
 @pytest.mark.parametrize("radii, share, ratio, model, needle", [
     (3.2, 0.036, 0.50, "directional", None),  # a near-lit glossy dome (measured)
     (6.2, 0.007, 0.89, "directional", None),  # lamps at 6.4 radii, glossy: its loss barely moves, the room is dark
-    (10.7, 0.080, 0.97, "directional", "10.7 object radii"),  # synthetic scene 20 (directional + environment)
+    (10.3, 0.005, 0.95, "directional", None),  # lamps at 10.6 radii, glossy, a dark room (measured)
+    (10.7, 0.080, 0.97, "directional", "explain little"),  # synthetic scene 20 (directional + environment)
+    (13.9, 0.061, 0.95, "directional", "explain little"),  # a dir + turning environment glossy dome (measured)
+    (22.2, 0.003, 0.77, "directional", "22.2 object radii"),  # synthetic scene 39: distant lights (the glossy look)
     (None, 0.004, 1.05, "directional", "infinitely far"),
     (5.0, 0.30, 0.50, "directional", "ambient of 30%"),
     (5.0, 0.08, 0.97, "directional", "explain little"),
@@ -214,3 +217,40 @@ def test_near_lamp_verdict(radii, share, ratio, model, needle):
     found = {"light_distance_radii": radii, "ambient_share": share, "loss_ratio": ratio}
     why = _near_verdict(found, RefineSettings(light_model=model))
     assert (why is None) if needle is None else (needle in why), why
+
+
+@pytest.mark.parametrize("near_share, glossy_share, trust, want_looks, want_check", [
+    (0.003, 0.006, 0.05, ["near", "glossy"], "principled"),  # far lamps in a dark room (synthetic scene 39)
+    (0.003, 0.079, 0.05, ["near", "glossy"], None),  # the distant fit needs an ambient: kept
+    (0.061, 0.040, 0.05, ["near"], None),  # a turning environment map: the near fit's share stops the glossy look
+    (0.003, 0.006, 0.0, ["near"], None),  # --no-refine-glossy
+])
+def test_second_looks_run_in_order_and_gate(monkeypatch, near_share, glossy_share, trust, want_looks, want_check):
+    """Control flow of :func:`refine` where the Lambertian check alone fails: the near-lamp look first (here its
+    lamps come out 40 radii away: not kept), then the distant (glossy) look only where the near fit's ambient
+    share is within ``trust_ambient``, kept where its own is."""
+    from matcap.refine import fit as F
+
+    ran = []
+
+    def fake(torch, images, maps, s, progress, lambertian=True, near=False, gate=False):
+        if lambertian:
+            rep = {"linear": {"lambertian_only": True, "reason": "not Lambertian"}, "kept_network_maps": True}
+            return F.RefineResult(maps=maps, lights=[], report=rep, residual=None, variation=None)
+        ran.append("near" if near else "glossy")
+        if near:
+            found = {"light_distance_radii": 40.0, "ambient_share": near_share, "loss_ratio": 0.99}
+            return {"reason": F._near_verdict(found, s), "near": found}
+        rep = {"linear": {"solved_fraction": 0.9}, "ambient_share": glossy_share, "kept_network_maps": False}
+        return F.RefineResult(maps=maps, lights=[], report=rep, residual=None, variation=None)
+
+    monkeypatch.setattr(F, "_refine", fake)
+    res = F.refine([], None, RefineSettings(trust_ambient=trust))
+    assert ran == want_looks
+    lin = res.report["linear"]
+    assert lin.get("check") == want_check
+    if want_check is None:
+        assert res.report["kept_network_maps"] and "40.0 object radii" in lin["reason"], lin
+        assert ("ambient of 6%" in lin["reason"]) == (near_share > trust > 0), lin["reason"]
+    else:
+        assert lin["near_fit"]["ambient_share"] == near_share and "40.0 object radii" in lin["reason_near"]

@@ -1,6 +1,8 @@
 """`matcap refine RESULT PHOTOS`: fit lights and maps of an existing result to its photos (again)."""
 from __future__ import annotations
 
+import argparse
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -21,9 +23,10 @@ def register(sub) -> None:
     p.add_argument("--srgb", action="store_true", help="decode 8-bit photos from sRGB (default: as the result did)")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
-    p.add_argument("--glossy", action="store_true",
-                   help="the object is glossy and each photo has one lamp, far away, in a dark room: fit it even "
-                        "where a matte surface does not explain the photos (docs/refine.md)")
+    p.add_argument("--glossy", action=argparse.BooleanOptionalAction, default=True,
+                   help="where a matte surface does not explain the photos and the lamps are not near, fit distant "
+                        "lamps anyway if one lamp per photo in a dark room explains them (on by default; "
+                        "docs/refine.md)")
     p.add_argument("--overwrite", action="store_true", help="replace RESULT (or a non-empty --out)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

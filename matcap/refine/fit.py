@@ -32,7 +32,7 @@ from scenes.materialmaps import MaterialMaps
 LUMA = (0.2126, 0.7152, 0.0722)
 
 
-GLOSSY_TRUST_AMBIENT = 0.05  # RefineSettings.trust_ambient for a glossy object under distant lamps
+GLOSSY_TRUST_AMBIENT = 0.05  # RefineSettings.trust_ambient (default; ``--no-refine-glossy``: 0)
 
 
 @dataclass
@@ -90,18 +90,19 @@ class RefineSettings:
     # normals resolved wrongly, 65 degrees off: 0.07-0.25)
     trust_spread: float = 0.02  # ... and the photos must not be (nearly) rank 1, as a flat sample's are (its one
     # normal cannot tell the lights apart: a flat wood sample 0.003, UW captures 0.07-0.09)
-    trust_ambient: float = 0.0  # > 0 (``--refine-glossy`` sets GLOSSY_TRUST_AMBIENT): where only the residual /
-    # inliers part of the check fails (a glossy object: its highlights are no Lambertian's), the fit runs anyway and
-    # is kept if its fixed ambient gives at most this share of the object's irradiance (one lamp per photo, far
-    # away, in a dark room). Off by default: a turning environment map passes it and ruins the maps (a glossy dome
-    # 4.19 -> 6.19; lamps about 3 object radii away did too, 3.71 -> 12.3, before the near-lamp check, which runs
-    # first, took them); where it holds it gains
-    # (synthetic split 18.52 -> 18.24, glossy domes 3.80 -> 1.22, 3.99 -> 2.3). docs/refine.md, session 13
+    trust_ambient: float = GLOSSY_TRUST_AMBIENT  # where only the residual / inliers part of the check fails (a
+    # glossy object: its highlights are no Lambertian's) and the near-lamp look below is not kept, the fit runs again
+    # with distant lights and is kept if its fixed ambient, and the near-lamp fit's, give at most this share of the
+    # object's irradiance (one lamp per photo in a dark room). Gains: synthetic split 18.52 -> 18.24, glossy domes
+    # 3.80 -> 1.19, 3.99 -> 2.3. The near-lamp fit's share is the gate because a turning environment map passes the
+    # distant fit's alone (a glossy dome: near 0.061, distant 0.040, which would take it 4.19 -> 6.14). 0
+    # (``--no-refine-glossy``) turns this look off. docs/refine.md, sessions 13 and 15
     near_check: bool = True  # where only the residual / inliers part of the check fails, fit lamps whose
     # distance the fit finds (a hand-held lamp near the object: its falloff is no distant light's) and keep that
     # fit if ...
-    near_distance: float = 10.0  # ... the median lamp came out within this many object radii (the radius of the
-    # disc as large as the mask), ...
+    near_distance: float = 15.0  # ... the median lamp came out within this many object radii (the radius of the
+    # disc as large as the mask; measured: lamps at 3.2 / 6.4 / 10.6 radii found at 3-8 / 10.3; distant lights at
+    # 22-223, a dir + environment light at 13.9-15.0, which the loss ratio below rejects), ...
     near_ambient: float = 0.2  # ... its fixed ambient gives at most this share of the object's irradiance (with
     # --refine-light point: only this), ...
     near_loss_ratio: float = 0.8  # ... and the distances cut the light fit's photometric loss to at most this
@@ -474,8 +475,9 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     Where the photos fail only the Lambertian part of the check (residual / inliers: a near lamp's falloff, a glossy
     object, or light that is not one lamp per photo), the fit runs again without it, with lights whose distance
     it finds (``near_check``), and is kept where :func:`_near_verdict` finds the lamps near and explaining the
-    photos (decided after the light fit); then (with ``trust_ambient`` > 0) with distant lights, kept if its fixed
-    ambient gives at most ``trust_ambient`` of the object's irradiance (:func:`ambient_share`). Otherwise the first
+    photos (decided after the light fit); then, where that fit's fixed ambient gave at most ``trust_ambient`` of the
+    object's irradiance (a dark room, lamps far), with distant lights, kept if its own ambient share is as small
+    (:func:`ambient_share`). Otherwise the first
     pass's kept maps are returned, with every reason.
     """
     import torch
@@ -498,9 +500,15 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
             if isinstance(second, dict):  # the check, or the near look's verdict, failed before the per-pixel fit
                 whys.append(second.get("reason"))
                 tried[look] = second.get("near") or {"solved_fraction": second.get("solved_fraction")}
-                if "near" in second:
-                    continue  # the lamps are not near: the glossy look may still apply
-                break  # the check itself failed: the same for every look
+                if "near" not in second:
+                    break  # the check itself failed: the same for every look
+                share = second["near"]["ambient_share"]
+                if share > s.trust_ambient:  # not one lamp per photo even with distances free: no distant look
+                    if "glossy" in looks and "ambient" not in (whys[-1] or ""):
+                        whys.append(f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (distant "
+                                    f"lamps tried up to {s.trust_ambient:.0%})")
+                    break
+                continue  # the lamps are far, in a dark room: the glossy look may still apply
             rep = second.report
             lin2, share = rep["linear"], rep["ambient_share"]
             if look == "near":
