@@ -535,7 +535,8 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
 def _near_verdict(found: dict, s: RefineSettings) -> str | None:
     """Why a near-lamp fit's lamps may not move the maps (one line), or None (:class:`RefineSettings` ``near_*``).
     ``found``: light_distance_radii (None: infinitely far), ambient_share, loss_ratio (None: not measured, with
-    ``light_model`` "point", where only the ambient counts)."""
+    ``light_model`` "point", where only the ambient counts, or where :func:`_needs_loss_ratio` says it cannot
+    change the verdict)."""
     radii, share, ratio = found["light_distance_radii"], found["ambient_share"], found["loss_ratio"]
     point = s.light_model == "point"
     if not point and (radii is None or radii > s.near_distance):
@@ -549,6 +550,13 @@ def _near_verdict(found: dict, s: RefineSettings) -> str | None:
                 f"{s.near_loss_ratio:.0%}) under a fixed ambient of {share:.0%} (trusted whatever the loss up to "
                 f"{s.near_dark:.0%})")
     return None
+
+
+def _needs_loss_ratio(found: dict, s: RefineSettings) -> bool:
+    """Whether :func:`_near_verdict` turns on the loss ratio for these findings (it costs ``light_iters`` more
+    joint steps): only for lamps near enough, under an ambient neither too strong nor a dark room's."""
+    radii, share = found["light_distance_radii"], found["ambient_share"]
+    return radii is not None and radii <= s.near_distance and s.near_dark < share <= s.near_ambient
 
 
 def _looks(tried: dict, but: str | None = None) -> dict:
@@ -676,19 +684,24 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     bar.add_total(light_iters - s.light_iters + (s.light_iters if compare else 0))
     lights = joint(lights, light_iters, "lights")
     near_found = dist = None
+    compared = False
     if near:  # the lamps' distances, from the distant solution
-        if compare:  # as many more steps with the lamps kept distant: what the distances gain is measured against
-            joint(lights.detached(), s.light_iters, "distant lights")
-            distant = last["data"]
+        distant_lights = lights
         lights = joint(_to_near(torch, lights, _centre(torch, mask).to(device)), s.light_iters, "point lights")
+        near_data = last["data"]
         dist = _median_distance(lights)
         if gate:
             with torch.no_grad():
                 share_l = ambient_share(torch, lights, prob.pos, prob.ns)
             near_found = {"ambient_share": round(share_l, 4),
                           "light_distance_radii": None if dist is None else round(dist / _object_radius(mask), 2),
-                          "loss_ratio": round(last["data"] / max(distant, 1e-12), 4) if compare else None,
-                          "solved_fraction": (linear_report or {}).get("solved_fraction")}
+                          "loss_ratio": None, "solved_fraction": (linear_report or {}).get("solved_fraction")}
+            if compare and _needs_loss_ratio(near_found, s):  # as many more steps with the lamps kept distant:
+                joint(distant_lights.detached(), s.light_iters, "distant lights")  # what the distances gain
+                near_found["loss_ratio"] = round(near_data / max(last["data"], 1e-12), 4)
+                compared = True
+            elif compare:
+                bar.add_total(-s.light_iters)
             why = _near_verdict(near_found, s)
             if why is not None:
                 bar.close()
@@ -778,7 +791,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         "psnr_db": [round(p, 3) for p in psnr],
         "psnr_db_mean": round(float(np.mean(psnr)), 3),
         "residual_mean": round(float(np.nanmean(residual)), 5),
-        "iterations": {"lights": light_iters + (s.light_iters * (2 if compare else 1) if near else 0), **iters_done},
+        "iterations": {"lights": light_iters + (s.light_iters * (2 if compared else 1) if near else 0), **iters_done},
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(float(n_change.mean()), 3),
