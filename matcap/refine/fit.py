@@ -78,8 +78,10 @@ class RefineSettings:
     # photos' normals must form one surface; the prior fixes only the bas-relief remainder, 4 numbers), "prior"
     # (all 9 numbers from the network's and the contour's normals). UW at 160 px through the whole fit: normals
     # 11.00 vs 15.31 degrees, light-direction medians 8.16 vs 11.48 (docs/refine.md)
-    equal_lights: float = 30.0  # with "integrability": weight of "every photo got about the same irradiance" (one
-    # lamp moved at a similar distance) against the prior in choosing the bas-relief; 0 ignores it
+    equal_lights: float = 150.0  # with "integrability": weight of "every photo got about the same irradiance" (one
+    # lamp moved at a similar distance) against the prior's misfit, relative to the prior's own (so a good prior
+    # keeps its bas-relief against unequal lamps) in choosing the bas-relief; 0 ignores it. UW 10.88, matte domes
+    # with tinted lamps 3.7-4.1 (30 on the unscaled prior, session 11: 11.00, 4.8-5.8; docs/refine.md session 15)
     trust_residual: float = 0.05  # the factorization must explain the photos to this relative RMS ...
     trust_inliers: float = 0.85  # ... with this share of inlier observations; otherwise the photos are not
     # explained by distant lights on a Lambertian-like surface (environment light, many objects, a mirror-like

@@ -248,7 +248,8 @@ def integrable_ambiguity(b_img: np.ndarray, ok: np.ndarray, prior: np.ndarray, p
     numbers ``c = (a3 x a1, a3 x a2)``, whose robust null vector (Cauchy-reweighted SVD; depth edges and cast
     shadows are its outliers) fixes ``A`` up to ``b -> (al b1 + be b3, al b2 + ga b3, de b3)``, the bas-relief
     family (Belhumeur, Kriegman and Yuille 1999). That family is fitted to ``|b| prior`` by linear least squares,
-    then (Nelder-Mead on its three shape numbers) to the prior's unit normals plus ``equal_lights`` times the
+    then (Nelder-Mead on its three shape numbers) to the prior's unit normals (their misfit relative to the
+    least-squares fit's) plus ``equal_lights`` times the
     variance of the log irradiances of ``lights`` (K, 3), in the frame of ``b_img``: one lamp moved around at a
     similar distance gives every photo about the same irradiance, and a wrong bas-relief gives them different ones
     (Hayakawa 1994); the photos themselves cannot tell the members of the family apart.
@@ -298,7 +299,12 @@ def _gbr(p: np.ndarray) -> np.ndarray:
 def _shape_fit(a: np.ndarray, b: np.ndarray, prior: np.ndarray, q: np.ndarray, lights: np.ndarray | None,
                equal_lights: float) -> np.ndarray:
     """``G a`` with the bas-relief ``G`` (shear p0, p1; depth scale exp(p2)) that best fits the unit normals of
-    ``G a b`` to ``prior`` (weights ``q``) plus ``equal_lights`` times the variance of log |lights (G a)^-1|."""
+    ``G a b`` to ``prior`` (weights ``q``) plus ``equal_lights`` times the variance of log |lights (G a)^-1|.
+
+    The prior's misfit is measured relative to its value at the start (``a`` itself, the least-squares bas-relief
+    fit to the prior): a prior that fits well (a good network) is not given up for equal irradiances that
+    tinted or unequal lamps never had, one that fits poorly leaves the choice to them (docs/refine.md, session 15).
+    """
     from scipy.optimize import minimize
 
     b1 = b @ a.T
@@ -307,11 +313,16 @@ def _shape_fit(a: np.ndarray, b: np.ndarray, prior: np.ndarray, q: np.ndarray, l
     s1 = None if lights is None else np.asarray(lights, np.float64) @ np.linalg.inv(a)
     q = q / max(q.sum(), 1e-12)
 
+    def misfit(p):
+        bb = b1 @ _gbr(p).T
+        nn = bb / np.maximum(np.linalg.norm(bb, axis=1, keepdims=True), 1e-12)
+        return float((q * ((nn - prior) ** 2).sum(1)).sum())
+
+    start = max(misfit(np.zeros(3)), 1e-6)
+
     def cost(p):
         g = _gbr(p)
-        bb = b1 @ g.T
-        nn = bb / np.maximum(np.linalg.norm(bb, axis=1, keepdims=True), 1e-12)
-        c = float((q * ((nn - prior) ** 2).sum(1)).sum())
+        c = misfit(p) / start
         if s1 is not None and equal_lights > 0:
             c += equal_lights * float(np.var(np.log(np.maximum(np.linalg.norm(s1 @ np.linalg.inv(g), axis=1),
                                                                   1e-12))))
