@@ -219,16 +219,20 @@ def test_near_lamp_verdict(radii, share, ratio, model, needle):
     assert (why is None) if needle is None else (needle in why), why
 
 
-@pytest.mark.parametrize("near_share, glossy_share, trust, want_looks, want_check", [
-    (0.003, 0.006, 0.05, ["near", "glossy"], "principled"),  # far lamps in a dark room (synthetic scene 39)
-    (0.003, 0.079, 0.05, ["near", "glossy"], None),  # the distant fit needs an ambient: kept
-    (0.061, 0.040, 0.05, ["near"], None),  # a turning environment map: the near fit's share stops the glossy look
-    (0.003, 0.006, 0.0, ["near"], None),  # --no-refine-glossy
+@pytest.mark.parametrize("radii, near_share, glossy_share, trust, want_looks, want_check", [
+    (22.0, 0.003, 0.006, 0.05, ["near", "glossy"], "principled"),  # far lamps in a dark room (synthetic scene 39)
+    (22.0, 0.003, 0.079, 0.05, ["near", "glossy"], None),  # the distant fit needs an ambient: kept
+    (14.0, 0.061, 0.040, 0.05, ["near"], None),  # a turning environment map: the near fit's share stops the glossy look
+    (95.0, 0.081, 0.079, 0.05, ["near", "glossy"], "principled"),  # a fixed room light: lamps far, up to 10 %
+    (95.0, 0.120, 0.079, 0.05, ["near"], None),  # too much ambient even so
+    (22.0, 0.003, 0.006, 0.0, ["near"], None),  # --no-refine-glossy
 ])
-def test_second_looks_run_in_order_and_gate(monkeypatch, near_share, glossy_share, trust, want_looks, want_check):
-    """Control flow of :func:`refine` where the Lambertian check alone fails: the near-lamp look first (here its
-    lamps come out 40 radii away: not kept), then the distant (glossy) look only where the near fit's ambient
-    share is within ``trust_ambient``, kept where its own is."""
+def test_second_looks_run_in_order_and_gate(monkeypatch, radii, near_share, glossy_share, trust, want_looks,
+                                            want_check):
+    """Control flow of :func:`refine` where the Lambertian check alone fails: the near-lamp look first (its lamps
+    come out ``radii`` object radii away, beyond the near limit or explaining little: not kept), then the distant
+    (glossy) look only where the near fit's ambient share is within ``trust_ambient`` (``trust_ambient_far`` where
+    the lamps stayed ``far_distance`` away), kept where its own is."""
     from matcap.refine import fit as F
 
     ran = []
@@ -239,7 +243,7 @@ def test_second_looks_run_in_order_and_gate(monkeypatch, near_share, glossy_shar
             return F.RefineResult(maps=maps, lights=[], report=rep, residual=None, variation=None)
         ran.append("near" if near else "glossy")
         if near:
-            found = {"light_distance_radii": 40.0, "ambient_share": near_share, "loss_ratio": 0.99}
+            found = {"light_distance_radii": radii, "ambient_share": near_share, "loss_ratio": 0.99}
             return {"reason": F._near_verdict(found, s), "near": found}
         rep = {"linear": {"solved_fraction": 0.9}, "ambient_share": glossy_share, "kept_network_maps": False}
         return F.RefineResult(maps=maps, lights=[], report=rep, residual=None, variation=None)
@@ -250,7 +254,7 @@ def test_second_looks_run_in_order_and_gate(monkeypatch, near_share, glossy_shar
     lin = res.report["linear"]
     assert lin.get("check") == want_check
     if want_check is None:
-        assert res.report["kept_network_maps"] and "40.0 object radii" in lin["reason"], lin
-        assert ("ambient of 6%" in lin["reason"]) == (near_share > trust > 0), lin["reason"]
+        assert res.report["kept_network_maps"] and lin["reason"].startswith("not Lambertian; without"), lin
+        assert ("ambient of 6%" in lin["reason"]) == (near_share == 0.061), lin["reason"]
     else:
-        assert lin["near_fit"]["ambient_share"] == near_share and "40.0 object radii" in lin["reason_near"]
+        assert lin["near_fit"]["ambient_share"] == near_share and lin["reason_near"]

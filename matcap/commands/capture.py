@@ -60,8 +60,8 @@ def register(sub) -> None:
                         "distance the fit finds, always")
     p.add_argument("--refine-glossy", action=argparse.BooleanOptionalAction, default=True,
                    help="where a matte surface does not explain the photos and the lamps are not near, fit distant "
-                        "lamps anyway if one lamp per photo in a dark room explains them (a glossy object; on by "
-                        "default, --no-refine-glossy keeps the maps there; docs/refine.md)")
+                        "lamps anyway if one lamp per photo and a fixed, faint room light explain them (a glossy "
+                        "object; on by default, --no-refine-glossy keeps the maps there; docs/refine.md)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
     p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")

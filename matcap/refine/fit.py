@@ -99,6 +99,10 @@ class RefineSettings:
     # 3.80 -> 1.19, 3.99 -> 2.3. The near-lamp fit's share is the gate because a turning environment map passes the
     # distant fit's alone (a glossy dome: near 0.061, distant 0.040, which would take it 4.19 -> 6.14). 0
     # (``--no-refine-glossy``) turns this look off. docs/refine.md, sessions 13 and 15
+    trust_ambient_far: float = 0.1  # ... and up to this share (both fits) where the near-lamp fit left the lamps at
+    # least ``far_distance`` object radii away: a fixed room light lets them stay far, light that turns between
+    # photos pulls them in (11-15 radii measured), so a glossy object under a lamp in a lit room is fitted too
+    far_distance: float = 30.0  # (measured: a room light of 8 %, 95 radii; turning maps 11-15, synthetic 10.7-114)
     near_check: bool = True  # where only the residual / inliers part of the check fails, fit lamps whose
     # distance the fit finds (a hand-held lamp near the object: its falloff is no distant light's) and keep that
     # fit if ...
@@ -496,6 +500,7 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
         # the Lambertian part of the check alone failed: the Principled fit may still explain the photos
         looks = (["near"] if point or s.near_check else []) + (["glossy"] if s.trust_ambient > 0 and not point else [])
         whys, tried = [], {}
+        limit = s.trust_ambient  # the glossy look's ambient limit: more where the near look left the lamps far
         for look in looks:
             second = _refine(torch, images, maps, s, progress, lambertian=False, near=look == "near",
                              gate=look == "near")
@@ -504,11 +509,13 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
                 tried[look] = second.get("near") or {"solved_fraction": second.get("solved_fraction")}
                 if "near" not in second:
                     break  # the check itself failed: the same for every look
-                share = second["near"]["ambient_share"]
-                if share > s.trust_ambient:  # not one lamp per photo even with distances free: no distant look
+                share, radii = second["near"]["ambient_share"], second["near"]["light_distance_radii"]
+                if radii is None or radii >= s.far_distance:
+                    limit = max(s.trust_ambient, s.trust_ambient_far)
+                if share > limit:  # not one lamp per photo even with distances free: no distant look
                     if "glossy" in looks and "ambient" not in (whys[-1] or ""):
                         whys.append(f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (distant "
-                                    f"lamps tried up to {s.trust_ambient:.0%})")
+                                    f"lamps tried up to {limit:.0%})")
                     break
                 continue  # the lamps are far, in a dark room: the glossy look may still apply
             rep = second.report
@@ -516,9 +523,9 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
             if look == "near":
                 ok, why = True, None
             else:
-                ok = share <= s.trust_ambient
+                ok = share <= limit
                 why = (f"the Principled fit needed a fixed ambient of {share:.0%} of the light (trusted up to "
-                       f"{s.trust_ambient:.0%}): not one light per photo")
+                       f"{limit:.0%}): not one light per photo")
                 tried[look] = {"ambient_share": share, "solved_fraction": lin2.get("solved_fraction")}
             if ok:
                 rep["linear"] = {**lin2, "check": "near lamps" if look == "near" else "principled",
