@@ -26,8 +26,7 @@ def register(sub) -> None:
     p.add_argument("--glossy", action=argparse.BooleanOptionalAction, default=True,
                    help="where a matte surface does not explain the photos and the lamps are not near, fit distant "
                         "lamps anyway if one lamp per photo and a fixed, faint room light explain them (on by "
-                        "default; "
-                        "docs/refine.md)")
+                        "default; docs/refine.md)")
     p.add_argument("--overwrite", action="store_true", help="replace RESULT (or a non-empty --out)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

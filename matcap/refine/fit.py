@@ -513,7 +513,8 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
                 if radii is None or radii >= s.far_distance:
                     limit = max(s.trust_ambient, s.trust_ambient_far)
                 if share > limit:  # not one lamp per photo even with distances free: no distant look
-                    if "glossy" in looks and "ambient" not in (whys[-1] or ""):
+                    far = radii is None or radii > s.near_distance  # the verdict named only the distance
+                    if "glossy" in looks and far:
                         whys.append(f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (distant "
                                     f"lamps tried up to {limit:.0%})")
                     break
@@ -693,7 +694,6 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     bar.add_total(light_iters - s.light_iters + (s.light_iters if compare else 0))
     lights = joint(lights, light_iters, "lights")
     near_found = dist = None
-    compared = False
     if near:  # the lamps' distances, from the distant solution
         distant_lights = lights
         lights = joint(_to_near(torch, lights, _centre(torch, mask).to(device)), s.light_iters, "point lights")
@@ -708,7 +708,6 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
             if compare and _needs_loss_ratio(near_found, s):  # as many more steps with the lamps kept distant:
                 joint(distant_lights.detached(), s.light_iters, "distant lights")  # what the distances gain
                 near_found["loss_ratio"] = round(near_data / max(last["data"], 1e-12), 4)
-                compared = True
             elif compare:
                 bar.add_total(-s.light_iters)
             why = _near_verdict(near_found, s)
@@ -795,12 +794,13 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
                            roughness=rough if (maps.roughness is not None or s.fit_brdf) else None,
                            metallic=metal if (maps.metallic is not None or s.fit_brdf) else None,
                            height=None, meta=keep_meta)
+    ratio_run = (near_found or {}).get("loss_ratio") is not None  # the distant lamps ran as long again
     n_change = np.degrees(np.arccos(np.clip((n_img[mask] * network_normal[mask]).sum(-1), -1, 1)))
     report = {
         "psnr_db": [round(p, 3) for p in psnr],
         "psnr_db_mean": round(float(np.mean(psnr)), 3),
         "residual_mean": round(float(np.nanmean(residual)), 5),
-        "iterations": {"lights": light_iters + (s.light_iters * (2 if compared else 1) if near else 0), **iters_done},
+        "iterations": {"lights": light_iters + (s.light_iters * (2 if ratio_run else 1) if near else 0), **iters_done},
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(float(n_change.mean()), 3),
@@ -814,7 +814,6 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         "ambient_share": round(share, 4),
         **({"light_distance_median": dist} if near else {}),
         **({"near_lamps": near_found} if near_found is not None else {}),
-
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
