@@ -287,26 +287,16 @@ def dome(args) -> None:
         print(f"| {rough} | {' | '.join(cells)} | {_check(checked)} |", flush=True)
 
 
-def _high_pass(n: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
-    """(H, W, 3) normals minus their Gaussian blur (``sigma`` px) over the mask alone (the background not blended
-    in): the fine detail."""
-    from scipy import ndimage
-
-    w = ndimage.gaussian_filter(mask.astype(np.float64), sigma)[..., None]
-    blur = np.stack([ndimage.gaussian_filter(np.where(mask, n[..., i], 0.0), sigma) for i in range(3)], -1)
-    return n - blur / np.maximum(w, 1e-9)
-
-
 def detail(args) -> None:
     """Fine detail: the textured dome of ``dome`` (16 directional lights, 45-degree cone, faint ambient, 256^2,
     Mitsuba, 32 spp), carrying the normal map of a CC0 Poly Haven set (``--texture``, default
-    painted_wooden_stool: scratches, grain and chipped paint). Normals vs the truth, whole and their fine detail
+    painted_wooden_stool: planks, grooves and chipped paint). Normals vs the truth, whole and their fine detail
     only (high-pass: minus a Gaussian blur of sigma 1.5 px, on the mask eroded by 6 px): mean error of the
-    high-pass vectors, and the correlation of their x, y with the truth's. ``--crops PNG``: photo / normals /
+    high-pass vectors, the correlation of their x, y with the truth's and their strength against it
+    (:func:`matcap.evaluation.metrics.detail_scores`). ``--crops PNG``: photo / normals /
     n.l shading under a grazing light, network / fit / truth, one row per roughness."""
-    from scipy import ndimage
-
     from matcap.capture import estimate
+    from matcap.evaluation.metrics import detail_scores
     from matcap.formats import load_maps
     from matcap.refine import refine
     from matcap.refine import synthetic as S
@@ -317,8 +307,8 @@ def detail(args) -> None:
     print(f"Detailed dome ({args.texture} normal map x{args.strength:g}), {args.side}^2, 16 photos, distant lights: "
           "normals vs the truth (mean deg), fine detail (high-pass error; correlation with the truth's)")
     print("| roughness | network | fit | detail error network / fit (truth's size) | detail correlation network / "
-          "fit | light dir | check |")
-    print("|---:|---:|---:|---|---|---:|---|")
+          "fit | detail amplitude network / fit | light dir | check |")
+    print("|---:|---:|---:|---|---|---|---:|---|")
     rows = []
     for rough in args.roughness:
         truth = S.textured_dome(args.side, tex, strength=args.strength, roughness=rough)
@@ -326,18 +316,12 @@ def detail(args) -> None:
         maps = estimate(photos, truth.mask, models=models, seed=0)
         res = refine(photos, maps, _settings(args))
         m = truth.mask
-        inner = ndimage.binary_erosion(m, iterations=6)
-        hp_t = _high_pass(truth.normal, m, 1.5)[inner]
-        err, corr = [], []
-        for n in (maps.normal, res.maps.normal):
-            hp = _high_pass(np.asarray(n, np.float64), m, 1.5)[inner]
-            err.append(float(np.linalg.norm(hp - hp_t, axis=-1).mean()))
-            corr.append(float(np.corrcoef(hp[:, :2].ravel(), hp_t[:, :2].ravel())[0, 1]))
+        before, after = (detail_scores(n, truth.normal, m) for n in (maps.normal, res.maps.normal))
         d = np.median([_angle(_towards(e), _towards(l)) for e, l in zip(res.lights, lights)])
-        size = float(np.linalg.norm(hp_t, axis=-1).mean())
         print(f"| {rough} | {_mean_err(maps.normal, truth.normal, m):.2f} | {_mean_err(res.maps.normal, truth.normal, m):.2f} "
-              f"| {err[0]:.3f} / {err[1]:.3f} ({size:.3f}) | {corr[0]:.2f} / {corr[1]:.2f} | {d:.1f} | {_check(res)} |",
-              flush=True)
+              f"| {before['error']:.3f} / {after['error']:.3f} ({after['truth_size']:.3f}) | "
+              f"{before['correlation']:.2f} / {after['correlation']:.2f} | {before['amplitude']:.2f} / "
+              f"{after['amplitude']:.2f} | {d:.1f} | {_check(res)} |", flush=True)
         rows.append((rough, photos, maps.normal, res.maps.normal, truth.normal))
     if args.crops:
         _detail_figure(args.crops, rows, args.side)

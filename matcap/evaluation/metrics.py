@@ -91,3 +91,35 @@ def analytic_sphere(mask: np.ndarray, rim: float = 0.98) -> tuple[np.ndarray, np
     nx, ny = (xx - cx) / radius, -(yy - cy) / radius
     normal = np.stack([nx, ny, np.sqrt(np.clip(1 - nx ** 2 - ny ** 2, 0, 1))], -1).astype(np.float32)
     return normal, mask & (nx ** 2 + ny ** 2 < rim)
+
+
+def high_pass(normal: np.ndarray, mask: np.ndarray, sigma: float = 1.5) -> np.ndarray:
+    """The fine detail of a normal map: (H, W, 3) ``normal`` minus its Gaussian blur of ``sigma`` px taken over
+    ``mask`` (H, W) alone (the background is not blended in at the edges)."""
+    from scipy import ndimage
+
+    m = np.asarray(mask, bool)
+    n = np.asarray(normal, np.float64)
+    if n.shape[:2] != m.shape or n.shape[-1] != 3:
+        raise ValueError(f"normal {n.shape} and mask {m.shape} do not match (want (H, W, 3) and (H, W))")
+    w = ndimage.gaussian_filter(m.astype(np.float64), sigma)[..., None]
+    blur = np.stack([ndimage.gaussian_filter(np.where(m, n[..., i], 0.0), sigma) for i in range(3)], -1)
+    return n - blur / np.maximum(w, 1e-9)
+
+
+def detail_scores(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, sigma: float = 1.5,
+                  erode: int = 6) -> dict[str, float]:
+    """How much of ``gt``'s fine detail (:func:`high_pass`) ``pred`` carries, on ``mask`` eroded by ``erode`` px:
+    ``error`` the mean length of the difference of the two high-pass vectors, ``truth_size`` the mean length of
+    the truth's (what ``error`` is when the detail is missing), ``correlation`` of their x, y components,
+    ``amplitude`` the least-squares gain from the truth's x, y to the prediction's (1: full strength)."""
+    from scipy import ndimage
+
+    inner = ndimage.binary_erosion(np.asarray(mask, bool), iterations=erode)
+    if inner.sum() < 16:
+        raise ValueError(f"the mask eroded by {erode} px leaves {int(inner.sum())} pixels: too small to score")
+    hp, ht = high_pass(pred, mask, sigma)[inner], high_pass(gt, mask, sigma)[inner]
+    return {"error": float(np.linalg.norm(hp - ht, axis=-1).mean()),
+            "truth_size": float(np.linalg.norm(ht, axis=-1).mean()),
+            "correlation": float(np.corrcoef(hp[:, :2].ravel(), ht[:, :2].ravel())[0, 1]),
+            "amplitude": float((hp[:, :2] * ht[:, :2]).sum() / max((ht[:, :2] ** 2).sum(), 1e-12))}
