@@ -293,10 +293,11 @@ def detail(args) -> None:
     painted_wooden_stool: planks, grooves and chipped paint). Normals vs the truth, whole and their fine detail
     only (high-pass: minus a Gaussian blur of sigma 1.5 px, on the mask eroded by 6 px): mean error of the
     high-pass vectors, the correlation of their x, y with the truth's and their strength against it
-    (:func:`matcap.evaluation.metrics.detail_scores`). ``--crops PNG``: photo / normals /
+    (:func:`matcap.evaluation.metrics.detail_scores`); the grid: the share of that detail at periods up to 1.1 x
+    side / 128 px (:func:`matcap.evaluation.metrics.fine_energy_share`). ``--crops PNG``: photo / normals /
     n.l shading under a grazing light, network / fit / truth, one row per roughness."""
     from matcap.capture import estimate
-    from matcap.evaluation.metrics import detail_scores
+    from matcap.evaluation.metrics import detail_scores, fine_energy_share
     from matcap.formats import load_maps
     from matcap.refine import refine
     from matcap.refine import synthetic as S
@@ -304,11 +305,13 @@ def detail(args) -> None:
     models = _models()
     tex = load_maps(SHARED.parent / "textures" / args.texture, max_side=args.side)
     lights = S.known_lights(16, seed=3, max_angle_deg=45.0)
+    grid = round(1.1 * args.side / 128, 2)  # the networks' interleaved 128 px tiles: a grid of period side / 128 px
     print(f"Detailed dome ({args.texture} normal map x{args.strength:g}), {args.side}^2, 16 photos, distant lights: "
           "normals vs the truth (mean deg), fine detail (high-pass error; correlation with the truth's)")
     print("| roughness | network | fit | detail error network / fit (truth's size) | detail correlation network / "
-          "fit | detail amplitude network / fit | light dir | check |")
-    print("|---:|---:|---:|---|---|---|---:|---|")
+          f"fit | detail amplitude network / fit | grid: detail at periods <= {grid:g} px, network / fit (truth) | "
+          "light dir | check |")
+    print("|---:|---:|---:|---|---|---|---|---:|---|")
     rows = []
     for rough in args.roughness:
         truth = S.textured_dome(args.side, tex, strength=args.strength, roughness=rough)
@@ -318,10 +321,12 @@ def detail(args) -> None:
         m = truth.mask
         before, after = (detail_scores(n, truth.normal, m) for n in (maps.normal, res.maps.normal))
         d = np.median([_angle(_towards(e), _towards(l)) for e, l in zip(res.lights, lights)])
+        shares = [fine_energy_share(n, m, grid) for n in (maps.normal, res.maps.normal, truth.normal)]
         print(f"| {rough} | {_mean_err(maps.normal, truth.normal, m):.2f} | {_mean_err(res.maps.normal, truth.normal, m):.2f} "
               f"| {before['error']:.3f} / {after['error']:.3f} ({after['truth_size']:.3f}) | "
               f"{before['correlation']:.2f} / {after['correlation']:.2f} | {before['amplitude']:.2f} / "
-              f"{after['amplitude']:.2f} | {d:.1f} | {_check(res)} |", flush=True)
+              f"{after['amplitude']:.2f} | {shares[0]:.0%} / {shares[1]:.0%} ({shares[2]:.0%}) | {d:.1f} | "
+              f"{_check(res)} |", flush=True)
         rows.append((rough, photos, maps.normal, res.maps.normal, truth.normal))
     if args.crops:
         _detail_figure(args.crops, rows, args.side)

@@ -69,3 +69,26 @@ def test_colour_map_ends_and_background():
     np.testing.assert_allclose(rgb[0, 1], [0.55, 0.0, 0.0])
     np.testing.assert_allclose(rgb[0, 2], rgb[0, 1])  # clipped at 90
     np.testing.assert_allclose(rgb[0, 3], 0.0)
+
+
+def test_fine_energy_share_finds_a_two_pixel_grid():
+    """A normal map tilted by a stripe pattern of period 2 px (the networks' tile grid at 256^2) has all its fine
+    detail at periods <= 2.2 px; smooth relief of period 16 px has none there."""
+    from matcap.evaluation.metrics import fine_energy_share
+
+    size = 64
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+    mask = (yy - 31.5) ** 2 + (xx - 31.5) ** 2 < 30 ** 2
+
+    def tilted(gx):
+        n = np.dstack([gx, np.zeros_like(gx), np.ones_like(gx)])
+        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+    grid = tilted(0.1 * (-1.0) ** xx)
+    smooth = tilted(0.3 * np.sin(2 * np.pi * xx / 16))
+    assert fine_energy_share(grid, mask, 2.2) > 0.99
+    assert fine_energy_share(smooth, mask, 2.2) < 0.01  # (the crop holds no whole number of its periods: leakage)
+    both = tilted(0.1 * (-1.0) ** xx + 0.1 * np.sin(2 * np.pi * xx / 16))
+    assert 0.2 < fine_energy_share(both, mask, 2.2) < 0.99
+    with pytest.raises(ValueError, match="no square"):
+        fine_energy_share(grid, np.eye(size, dtype=bool), 2.2)

@@ -123,3 +123,28 @@ def detail_scores(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, sigma: flo
             "truth_size": float(np.linalg.norm(ht, axis=-1).mean()),
             "correlation": float(np.corrcoef(hp[:, :2].ravel(), ht[:, :2].ravel())[0, 1]),
             "amplitude": float((hp[:, :2] * ht[:, :2]).sum() / max((ht[:, :2] ** 2).sum(), 1e-12))}
+
+
+def fine_energy_share(normal: np.ndarray, mask: np.ndarray, max_period: float, sigma: float = 1.5) -> float:
+    """Share of a normal map's fine detail (:func:`high_pass`, x and y) whose spatial period along x or y is at
+    most ``max_period`` px, over the largest square centred on the mask's centroid that lies inside it (a power
+    spectrum needs a rectangle). The networks' interleaved 128 px tiles leave a grid of period side / 128 px (2 px
+    at 256^2, 4 px at 512^2): where it dominates, this share is far above the truth's."""
+    m = np.asarray(mask, bool)
+    ys, xs = np.nonzero(m)
+    if len(ys) == 0:
+        raise ValueError("the mask is empty")
+    cy, cx = int(round(ys.mean())), int(round(xs.mean()))
+    half = 0  # an even side, so that a period of 2 px falls on a frequency bin
+    while (cy - half - 1 >= 0 and cx - half - 1 >= 0 and cy + half + 1 <= m.shape[0] and cx + half + 1 <= m.shape[1]
+           and m[cy - half - 1:cy + half + 1, cx - half - 1:cx + half + 1].all()):
+        half += 1
+    if 2 * half < 8:
+        raise ValueError(f"the mask holds no square of 8 px around its centre ({2 * half} px)")
+    sl = (slice(cy - half, cy + half), slice(cx - half, cx + half))
+    hp = high_pass(normal, m, sigma)[sl][..., :2]
+    power = (np.abs(np.fft.fft2(hp, axes=(0, 1))) ** 2).sum(-1)
+    fy = np.abs(np.fft.fftfreq(power.shape[0]))[:, None]
+    fx = np.abs(np.fft.fftfreq(power.shape[1]))[None, :]
+    band = (fx >= 1.0 / max_period) | (fy >= 1.0 / max_period)
+    return float(power[band].sum() / max(power.sum(), 1e-30))
