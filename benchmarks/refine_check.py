@@ -288,9 +288,10 @@ def dome(args) -> None:
 
 
 def detail(args) -> None:
-    """Fine detail: the textured dome of ``dome`` (16 directional lights, 45-degree cone, faint ambient, 256^2,
-    Mitsuba, 32 spp), carrying the normal map of a CC0 Poly Haven set (``--texture``, default
-    painted_wooden_stool: planks, grooves and chipped paint). Normals vs the truth, whole and their fine detail
+    """Fine detail: the dome of ``dome`` (16 directional lights, 45-degree cone, faint ambient, 256^2, Mitsuba,
+    32 spp), its surface carrying the relief of a CC0 Poly Haven set's normal map (``--texture``, default
+    painted_wooden_stool: planks, grooves and chipped paint), integrated into a height field
+    (:func:`matcap.refine.synthetic.relief_dome`; ``--baked``: the normal map as it is, which no surface has). Normals vs the truth, whole and their fine detail
     only (high-pass: minus a Gaussian blur of sigma 1.5 px, on the mask eroded by 6 px): mean error of the
     high-pass vectors, the correlation of their x, y with the truth's and their strength against it
     (:func:`matcap.evaluation.metrics.detail_scores`); the grid: the share of that detail at periods up to 1.1 x
@@ -306,7 +307,7 @@ def detail(args) -> None:
     tex = load_maps(SHARED.parent / "textures" / args.texture, max_side=args.side)
     lights = S.known_lights(16, seed=3, max_angle_deg=45.0)
     grid = round(1.1 * args.side / 128, 2)  # the networks' interleaved 128 px tiles: a grid of period side / 128 px
-    print(f"Detailed dome ({args.texture} normal map x{args.strength:g}), {args.side}^2, 16 photos, distant lights: "
+    print(f"Detailed dome ({args.texture} {'normal map' if args.baked else 'relief'} x{args.strength:g}), {args.side}^2, 16 photos, distant lights: "
           "normals vs the truth (mean deg), fine detail (high-pass error; correlation with the truth's)")
     print("| roughness | network | fit | detail error network / fit (truth's size) | detail correlation network / "
           f"fit | detail amplitude network / fit | grid: detail at periods <= {grid:g} px, network / fit (truth) | "
@@ -314,7 +315,8 @@ def detail(args) -> None:
     print("|---:|---:|---:|---|---|---|---|---:|---|")
     rows = []
     for rough in args.roughness:
-        truth = S.textured_dome(args.side, tex, strength=args.strength, roughness=rough)
+        make = S.textured_dome if args.baked else S.relief_dome
+        truth = make(args.side, tex, strength=args.strength, roughness=rough)
         photos = S.render_capture(truth, lights, ambient=0.02, spp=32)
         maps = estimate(photos, truth.mask, models=models, seed=0)
         res = refine(photos, maps, _settings(args))
@@ -465,6 +467,8 @@ def main(argv=None) -> int:
                     help="detail: the texture set under ../shared/data/textures whose normal map the dome carries")
     ap.add_argument("--strength", type=float, default=1.0, help="detail: scale of that normal map's x, y (default 1)")
     ap.add_argument("--crops", help="detail: write the crops figure to this PNG")
+    ap.add_argument("--baked", action="store_true",
+                    help="detail: the normal map laid on the dome as it is (textured_dome), not integrated into a relief")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="a RefineSettings field for the fit (repeatable), e.g. light_iters=0")

@@ -180,6 +180,54 @@ def test_textured_dome_carries_the_detail_in_the_sphere_frame():
         S.textured_dome(64, detail)
 
 
+def test_height_from_normals_integrates_a_height_field():
+    """The normals of a periodic height field (slopes by central differences, as np.gradient takes them inside
+    the image) give the height back, exactly up to its mean; a field with curl loses that part."""
+    size = 48
+    yy, xx = np.mgrid[0:size, 0:size] * (2 * np.pi / size)
+    h = 2.0 * np.sin(xx) * np.cos(2 * yy) + 0.5 * np.cos(3 * xx + yy)
+    dh_drow = (np.roll(h, -1, 0) - np.roll(h, 1, 0)) / 2
+    dh_dcol = (np.roll(h, -1, 1) - np.roll(h, 1, 1)) / 2
+    n = np.dstack([-dh_dcol, dh_drow, np.ones_like(h)])  # y up: dz/dy = -dz/drow
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    got = S.height_from_normals(n)
+    assert np.abs(got - (h - h.mean())).max() < 1e-9
+    curl = np.dstack([np.sin(yy) * 0.3, np.sin(xx) * 0.3, np.ones_like(h)])  # dz/dx = 0.3 sin y: no height has it
+    curl /= np.linalg.norm(curl, axis=-1, keepdims=True)
+    assert np.abs(S.height_from_normals(curl)).max() < 1e-9
+
+
+def test_relief_dome_is_one_height_field():
+    """relief_dome: the sphere where the relief is flat; with a textured relief, finite-difference curl of its
+    slopes ~0 (textured_dome's baked normal map: far from it), and the detail tilts the sphere's normals."""
+    from matcap.evaluation.toy import sphere_normals
+
+    sphere, mask = sphere_normals(40, radius_frac=0.47, max_angle_deg=89.0)
+    flat = S.relief_dome(40, _detail(40, 0.0), roughness=0.3)
+    assert np.array_equal(flat.mask, mask)
+    inner = mask & (sphere[..., 2] > 0.2)
+    assert np.abs(flat.normal[inner] - sphere[inner]).max() < 1e-4
+    assert np.all(flat.roughness[mask] == np.float32(0.3)) and not flat.normal[~mask].any()
+
+    def curl_ratio(n):
+        from scipy import ndimage
+
+        m = ndimage.binary_erosion(inner, iterations=2)
+        nz = np.where(mask, n[..., 2], 1.0)  # off the mask the normals are 0
+        p, q = -n[..., 0] / nz, -n[..., 1] / nz
+        curl = -np.gradient(p, axis=0) - np.gradient(q, axis=1)
+        grad = np.abs(np.gradient(p, axis=1)) + np.abs(np.gradient(q, axis=0))
+        return float(np.abs(curl[m]).mean() / grad[m].mean())
+
+    rough = _detail(40, 0.5)
+    rough.normal[..., 1] *= -1  # a detail field with curl (y flipped), so that integrating it changes it
+    relief = S.relief_dome(40, rough, strength=2.0)
+    tilt = np.degrees(np.arccos(np.clip((relief.normal * sphere).sum(-1), -1, 1)))[inner]
+    assert tilt.mean() > 2.0
+    assert curl_ratio(relief.normal.astype(np.float64)) < 0.02
+    assert curl_ratio(S.textured_dome(40, rough, strength=2.0).normal.astype(np.float64)) > 0.1
+
+
 @pytest.mark.slow
 def test_a_glossy_textured_dome_is_fitted():
     """One object, one light moved around it, faint ambient (the capture the fit is for; benchmarks/refine_check.py

@@ -55,6 +55,48 @@ def textured_dome(size: int, detail: MaterialMaps, strength: float = 2.0, roughn
                         metallic=_on_mask(np.zeros((size, size)), mask))
 
 
+def height_from_normals(normal: np.ndarray) -> np.ndarray:
+    """(H, W) height (pixel units, mean 0) whose gradient best fits a normal map's in least squares
+    (Frankot & Chellappa 1988: the projection onto integrable fields, periodic boundary): a baked normal map made a
+    surface that can exist. normal: (H, W, 3), x right, y up, z toward the viewer."""
+    n = np.asarray(normal, np.float64)
+    nz = np.clip(n[..., 2], 0.05, None)
+    dz_dcol, dz_drow = -n[..., 0] / nz, n[..., 1] / nz  # y up: rows run down
+    h, w = dz_dcol.shape
+    wc = 2.0 * np.pi * np.fft.fftfreq(w)[None, :]
+    wr = 2.0 * np.pi * np.fft.fftfreq(h)[:, None]
+    # the spectral derivative of a central difference, so that np.gradient of the height gives back the slopes
+    dc, dr = 1j * np.sin(wc), 1j * np.sin(wr)
+    den = np.abs(dc) ** 2 + np.abs(dr) ** 2
+    den[0, 0] = 1.0
+    z = (np.conj(dc) * np.fft.fft2(dz_dcol) + np.conj(dr) * np.fft.fft2(dz_drow)) / den
+    z[0, 0] = 0.0
+    return np.real(np.fft.ifft2(z))
+
+
+def relief_dome(size: int, detail: MaterialMaps, strength: float = 1.0, roughness: float = 0.4) -> MaterialMaps:
+    """A sphere seen up to its occluding contour whose surface carries the relief of a texture set's normal map
+    (:func:`height_from_normals`, times ``strength``) and its base colour: unlike :func:`textured_dome`, one
+    height field (every photo of a real object is of one), so integrability holds. Constant ``roughness``,
+    metallic 0; mask and outline as :func:`textured_dome`."""
+    if min(detail.shape) < size:
+        raise ValueError(f"the texture set is {detail.shape}, smaller than the dome's {size} px")
+    _, mask = sphere_normals(size, radius_frac=0.47, max_angle_deg=89.0)
+    d = detail.with_defaults()
+    relief = strength * height_from_normals(d.normal[:size, :size])
+    c, r = (size - 1) / 2.0, 0.47 * size
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+    x, y = xx - c, -(yy - c)
+    z0 = np.sqrt(np.clip(r * r - x * x - y * y, 1e-6, None))
+    dh_drow, dh_dcol = np.gradient(relief)
+    gx, gy = -x / z0 + dh_dcol, -y / z0 - dh_drow  # dz/dx, dz/dy (y up) of sphere + relief
+    n = np.stack([-gx, -gy, np.ones_like(gx)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return MaterialMaps(normal=_on_mask(n, mask), mask=mask, base_color=_on_mask(d.base_color[:size, :size], mask),
+                        roughness=_on_mask(np.full((size, size), roughness), mask),
+                        metallic=_on_mask(np.zeros((size, size)), mask))
+
+
 def known_lights(count: int = 12, seed: int = 3, max_angle_deg: float = 55.0, kind: str = "directional",
                  distance: float = 3.0):
     """``count`` DirectionalLights (or PointLights at ``distance``) in a cone around the view, RGB-tinted."""
