@@ -38,10 +38,7 @@ def textured_dome(size: int, detail: MaterialMaps, strength: float = 2.0, roughn
     """A sphere seen up to its occluding contour, carrying the tangent-space detail and the base colour of a
     texture set ``detail`` (e.g. a CC0 wood set through :func:`matcap.formats.load_maps`, at least ``size``
     pixels square): its normal map's x, y scaled by ``strength``, constant ``roughness``, metallic 0."""
-    if min(detail.shape) < size:
-        raise ValueError(f"the texture set is {detail.shape}, smaller than the dome's {size} px")
-    normal, mask = sphere_normals(size, radius_frac=0.47, max_angle_deg=89.0)
-    d = detail.with_defaults()
+    normal, mask, d = _dome(size, detail)
     t = np.asarray(d.normal[:size, :size], np.float32).copy()
     t[..., :2] *= strength
     t /= np.linalg.norm(t, axis=-1, keepdims=True).clip(1e-6)
@@ -50,9 +47,22 @@ def textured_dome(size: int, detail: MaterialMaps, strength: float = 2.0, roughn
     bitangent = np.cross(normal, tangent)
     n = t[..., :1] * tangent + t[..., 1:2] * bitangent + t[..., 2:3] * normal
     n /= np.linalg.norm(n, axis=-1, keepdims=True).clip(1e-6)
-    return MaterialMaps(normal=_on_mask(n, mask), mask=mask, base_color=_on_mask(d.base_color[:size, :size], mask),
-                        roughness=_on_mask(np.full((size, size), roughness), mask),
-                        metallic=_on_mask(np.zeros((size, size)), mask))
+    return _dome_maps(n, mask, d, roughness)
+
+
+def _dome(size: int, detail: MaterialMaps):
+    """(sphere normals, mask, ``detail`` with defaults) of the domes: a sphere up to its occluding contour."""
+    if min(detail.shape) < size:
+        raise ValueError(f"the texture set is {detail.shape}, smaller than the dome's {size} px")
+    normal, mask = sphere_normals(size, radius_frac=0.47, max_angle_deg=89.0)
+    return normal, mask, detail.with_defaults()
+
+
+def _dome_maps(normal: np.ndarray, mask: np.ndarray, d: MaterialMaps, roughness: float) -> MaterialMaps:
+    """A dome's maps: ``normal`` and the base colour of ``d`` on ``mask``, constant ``roughness``, metallic 0."""
+    h, w = mask.shape
+    return MaterialMaps(normal=_on_mask(normal, mask), mask=mask, base_color=_on_mask(d.base_color[:h, :w], mask),
+                        roughness=_on_mask(np.full((h, w), roughness), mask), metallic=_on_mask(np.zeros((h, w)), mask))
 
 
 def height_from_normals(normal: np.ndarray) -> np.ndarray:
@@ -79,10 +89,7 @@ def relief_dome(size: int, detail: MaterialMaps, strength: float = 1.0, roughnes
     (:func:`height_from_normals`, times ``strength``) and its base colour: unlike :func:`textured_dome`, one
     height field (every photo of a real object is of one), so integrability holds. Constant ``roughness``,
     metallic 0; mask and outline as :func:`textured_dome`."""
-    if min(detail.shape) < size:
-        raise ValueError(f"the texture set is {detail.shape}, smaller than the dome's {size} px")
-    _, mask = sphere_normals(size, radius_frac=0.47, max_angle_deg=89.0)
-    d = detail.with_defaults()
+    _, mask, d = _dome(size, detail)
     relief = strength * height_from_normals(d.normal[:size, :size])
     c, r = (size - 1) / 2.0, 0.47 * size
     yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
@@ -92,9 +99,7 @@ def relief_dome(size: int, detail: MaterialMaps, strength: float = 1.0, roughnes
     gx, gy = -x / z0 + dh_dcol, -y / z0 - dh_drow  # dz/dx, dz/dy (y up) of sphere + relief
     n = np.stack([-gx, -gy, np.ones_like(gx)], -1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    return MaterialMaps(normal=_on_mask(n, mask), mask=mask, base_color=_on_mask(d.base_color[:size, :size], mask),
-                        roughness=_on_mask(np.full((size, size), roughness), mask),
-                        metallic=_on_mask(np.zeros((size, size)), mask))
+    return _dome_maps(n, mask, d, roughness)
 
 
 def known_lights(count: int = 12, seed: int = 3, max_angle_deg: float = 55.0, kind: str = "directional",
