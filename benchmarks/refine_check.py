@@ -291,8 +291,9 @@ def detail(args) -> None:
     """Fine detail: the dome of ``dome`` (16 directional lights, 45-degree cone, faint ambient, 256^2, Mitsuba,
     32 spp), its surface carrying the relief of a CC0 Poly Haven set's normal map (``--texture``, default
     painted_wooden_stool: planks, grooves and chipped paint), integrated into a height field
-    (:func:`matcap.refine.synthetic.relief_dome`; ``--baked``: the normal map as it is, which no surface has). Normals vs the truth, whole and their fine detail
-    only (high-pass: minus a Gaussian blur of sigma 1.5 px, on the mask eroded by 6 px): mean error of the
+    (:func:`matcap.refine.synthetic.relief_dome`; ``--baked``: the normal map as it is, which no surface has).
+    Normals vs the truth, whole and their fine detail only (high-pass: minus a Gaussian blur of sigma 1.5 px, on
+    the mask eroded by 6 px): mean error of the
     high-pass vectors, the correlation of their x, y with the truth's and their strength against it
     (:func:`matcap.evaluation.metrics.detail_scores`); the grid: the share of that detail at periods up to 1.1 x
     side / 128 px (:func:`matcap.evaluation.metrics.fine_energy_share`). ``--crops PNG``: photo / normals /
@@ -307,15 +308,16 @@ def detail(args) -> None:
     tex = load_maps(SHARED.parent / "textures" / args.texture, max_side=args.side)
     lights = S.known_lights(16, seed=3, max_angle_deg=45.0)
     grid = round(1.1 * args.side / 128, 2)  # the networks' interleaved 128 px tiles: a grid of period side / 128 px
-    print(f"Detailed dome ({args.texture} {'normal map' if args.baked else 'relief'} x{args.strength:g}), {args.side}^2, 16 photos, distant lights: "
-          "normals vs the truth (mean deg), fine detail (high-pass error; correlation with the truth's)")
+    make = S.textured_dome if args.baked else S.relief_dome
+    print(f"Detailed dome ({args.texture} {'normal map' if args.baked else 'relief'} x{args.strength:g}), "
+          f"{args.side}^2, 16 photos, distant lights: normals vs the truth (mean deg), fine detail (high-pass error; "
+          "correlation with the truth's)")
     print("| roughness | network | fit | detail error network / fit (truth's size) | detail correlation network / "
           f"fit | detail amplitude network / fit | grid: detail at periods <= {grid:g} px, network / fit (truth) | "
           "light dir | check |")
     print("|---:|---:|---:|---|---|---|---|---:|---|")
     rows = []
     for rough in args.roughness:
-        make = S.textured_dome if args.baked else S.relief_dome
         truth = make(args.side, tex, strength=args.strength, roughness=rough)
         photos = S.render_capture(truth, lights, ambient=0.02, spp=32)
         maps = estimate(photos, truth.mask, models=models, seed=0)
@@ -323,11 +325,13 @@ def detail(args) -> None:
         m = truth.mask
         before, after = (detail_scores(n, truth.normal, m) for n in (maps.normal, res.maps.normal))
         d = np.median([_angle(_towards(e), _towards(l)) for e, l in zip(res.lights, lights)])
-        shares = [fine_energy_share(n, m, grid) for n in (maps.normal, res.maps.normal, truth.normal)]
-        print(f"| {rough} | {_mean_err(maps.normal, truth.normal, m):.2f} | {_mean_err(res.maps.normal, truth.normal, m):.2f} "
-              f"| {before['error']:.3f} / {after['error']:.3f} ({after['truth_size']:.3f}) | "
+        shares = ([f"{fine_energy_share(n, m, grid):.0%}" for n in (maps.normal, res.maps.normal, truth.normal)]
+                  if grid >= 2 else ["-"] * 3)  # at 128^2 and less the tiles do not interleave: no grid
+        print(f"| {rough} | {_mean_err(maps.normal, truth.normal, m):.2f} | "
+              f"{_mean_err(res.maps.normal, truth.normal, m):.2f} | {before['error']:.3f} / {after['error']:.3f} "
+              f"({after['truth_size']:.3f}) | "
               f"{before['correlation']:.2f} / {after['correlation']:.2f} | {before['amplitude']:.2f} / "
-              f"{after['amplitude']:.2f} | {shares[0]:.0%} / {shares[1]:.0%} ({shares[2]:.0%}) | {d:.1f} | "
+              f"{after['amplitude']:.2f} | {shares[0]} / {shares[1]} ({shares[2]}) | {d:.1f} | "
               f"{_check(res)} |", flush=True)
         rows.append((rough, photos, maps.normal, res.maps.normal, truth.normal))
     if args.crops:
@@ -336,7 +340,7 @@ def detail(args) -> None:
 
 def _detail_figure(path, rows, side: int, crop: int = 80, zoom: int = 3) -> None:
     """One row per roughness: a photo, then network / fit / truth normals (RGB = n * 0.5 + 0.5), then their n.l
-    shading under a grazing light from the upper left; an ``crop``-px square from the dome's centre, ``zoom``x."""
+    shading under a grazing light from the upper left; a ``crop``-px square from the dome's centre, ``zoom``x."""
     import cv2
 
     from matcap.imageio import linear_to_srgb, write_png
@@ -353,7 +357,7 @@ def _detail_figure(path, rows, side: int, crop: int = 80, zoom: int = 3) -> None
         tiles += [np.clip(np.asarray(n[sl], np.float32) * 0.5 + 0.5, 0, 1) for n in normals]
         tiles += [np.repeat(np.clip(np.asarray(n[sl], np.float64) @ grazing, 0, 1)[..., None], 3, -1)
                   for n in normals]
-        big = [cv2.resize(np.asarray(t, np.float32), (tile, tile), interpolation=cv2.INTER_NEAREST) for t in tiles]
+        big = [np.asarray(t, np.float32).repeat(zoom, 0).repeat(zoom, 1) for t in tiles]
         row = np.concatenate([np.pad(b, ((0, 0), (2, 2), (0, 0)), constant_values=1.0) for b in big], 1)
         head = np.full((22, row.shape[1], 3), 255, np.uint8)  # OpenCV draws text on 8-bit images only
         for i, text in enumerate(labels):
@@ -442,8 +446,7 @@ print(json.dumps({{"seconds": time.perf_counter() - t0, "pixels": int(m.sum()), 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("what", choices=("sphere", "uw", "synthetic", "timing", "samples", "dome",
-                                                "detail"))
+    ap.add_argument("what", choices=("sphere", "uw", "synthetic", "timing", "samples", "dome", "detail"))
     ap.add_argument("--capture", help="ToyPS sphere folder (sphere)")
     ap.add_argument("--objects", default="buddha,cat,gray,horse,owl,rock", help="UW objects (uw)")
     ap.add_argument("--max-side", type=int, default=256, help="photo side for the UW rows (uw; default 256)")
@@ -468,7 +471,8 @@ def main(argv=None) -> int:
     ap.add_argument("--strength", type=float, default=1.0, help="detail: scale of that normal map's x, y (default 1)")
     ap.add_argument("--crops", help="detail: write the crops figure to this PNG")
     ap.add_argument("--baked", action="store_true",
-                    help="detail: the normal map laid on the dome as it is (textured_dome), not integrated into a relief")
+                    help="detail: the normal map laid on the dome as it is (textured_dome), not integrated into a "
+                         "relief")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="a RefineSettings field for the fit (repeatable), e.g. light_iters=0")
