@@ -13,8 +13,9 @@ Coarse to fine:
   1. lights: the Lambertian factorization (:mod:`matcap.refine.linear`; or least squares from the network
      normals), then a joint robust fit of the lights and of the maps of a random subsample of pixels of a
      downsampled copy of the photos; near lamps start there as distant ones and then fit their distances;
-  2. maps: with the lights fixed every pixel is an independent problem: Adam on all pixels at once (in chunks), on
-     a half-size copy first, whose corrections are upsampled as the start of the full-size solve.
+  2. maps: with the lights fixed every pixel is an independent problem: Levenberg-Marquardt on all pixels at once
+     (in chunks; :mod:`matcap.refine.solve`), on a half-size copy first, whose corrections are upsampled as the
+     start of the full-size solve.
 Photos are scaled so that their mean over the mask is 0.5 (the fit's units); lights are reported in photo units.
 """
 from __future__ import annotations
@@ -56,8 +57,12 @@ class RefineSettings:
     light_iters: int = 400
     kept_light_iters: int = 200  # where the maps are kept, the lights alone are fitted to them (examples/bunny:
     # re-render 25.51 dB after 200 and after 400 steps; 24.46 when the subsample's maps moved with the lights)
-    coarse_iters: int = 100  # per-pixel iterations at half size (skipped when the maps are <= 128 px)
-    fine_iters: int = 150  # per-pixel iterations at full size
+    pixel_solver: str = "lm"  # the per-pixel solve: "lm" (Levenberg-Marquardt per pixel, matcap.refine.solve) or
+    # "adam" (first-order, the solver before session 17; give it about ten times the iterations: 100 / 150)
+    coarse_iters: int = 10  # per-pixel iterations at half size (skipped when the maps are <= 128 px)
+    fine_iters: int = 20  # per-pixel iterations at full size
+    pixel_tol: float = 1e-4  # "lm": a pixel is done (and drops out of the solve) once two iterations in a row
+    # lowered its loss by less than this share of it
     lr_light: float = 0.02
     lr_pixel: float = 0.05
     chunk: int = 32768  # pixels per chunk of the per-pixel solve (memory)
@@ -843,9 +848,12 @@ def ambient_share(torch, lights, pos, normal) -> float:
 
 
 def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
-    """Adam on every pixel (independent problems once the lights are fixed), chunk by chunk."""
+    """Every pixel's maps with the lights fixed (independent problems), chunk by chunk: Levenberg-Marquardt
+    (``s.pixel_solver`` "lm") or Adam on the same loss (:func:`_loss`)."""
     from matcap.refine.model import PixelParams
 
+    if s.pixel_solver not in ("lm", "adam"):
+        raise MatcapError(f"pixel_solver must be 'lm' or 'adam', got {s.pixel_solver!r}")
     lights = lights.detached()
     out = [t.detach().clone() for t in px0.tensors()]
     n = len(prob)
@@ -853,18 +861,74 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
     bar.add_total(iters * len(chunks))
     for sl in chunks:
         part = prob.part(sl)
-        px = PixelParams(*(t[sl].clone().requires_grad_(True) for t in out))
-        opt = torch.optim.Adam(px.tensors(), lr=s.lr_pixel)
-        for it in range(iters):
-            opt.zero_grad()
-            per, _ = _loss(torch, part, px, lights, s, c, s.fit_brdf)
-            loss = per.sum()
-            loss.backward()
-            opt.step()
-            bar.step(label, float(loss.detach()) / max(1, len(part)))
-        for o, t in zip(out, px.tensors()):
+        if s.pixel_solver == "lm":
+            solved = _lm_pixels(torch, part, [t[sl] for t in out], lights, s, c, iters,
+                                lambda loss: bar.step(label, loss))
+        else:
+            px = PixelParams(*(t[sl].clone().requires_grad_(True) for t in out))
+            opt = torch.optim.Adam(px.tensors(), lr=s.lr_pixel)
+            for it in range(iters):
+                opt.zero_grad()
+                per, _ = _loss(torch, part, px, lights, s, c, s.fit_brdf)
+                loss = per.sum()
+                loss.backward()
+                opt.step()
+                bar.step(label, float(loss.detach()) / max(1, len(part)))
+            solved = px.tensors()
+        for o, t in zip(out, solved):
             o[sl] = t.detach()
     return PixelParams(*out)
+
+
+class _Rows:
+    """The torch tensors of :class:`_Problem` ``prob`` at pixels ``rows`` (an index tensor; usable inside
+    ``torch.func`` transforms, unlike :meth:`_Problem.part`)."""
+
+    def __init__(self, prob: _Problem, rows):
+        self.obs, self.sat = prob.obs[:, rows], prob.sat[:, rows]
+        for k in ("weight", "n0", "b0", "r0", "m0", "pos"):
+            setattr(self, k, getattr(prob, k)[rows])
+
+
+def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
+    """:func:`matcap.refine.solve.levenberg_marquardt` on :func:`_loss` of the pixels ``part``: the same data
+    term (Cauchy, clipped highlights a lower bound only, weighted per pixel and averaged over the colour
+    channels) and the same priors, as residuals. ``start``: the four :class:`PixelParams` tensors; returns them."""
+    from matcap.refine.model import PixelParams
+    from matcap.refine.solve import levenberg_marquardt
+
+    grad, base_logit, rough_logit, metal_logit = start
+    n = len(part)
+    brdf = s.fit_brdf  # without it roughness and metallic stay the network's: 5 parameters
+    theta = torch.cat([grad, base_logit] + ([rough_logit[:, None], metal_logit[:, None]] if brdf else []), 1)
+    roots = [math.sqrt(s.prior_normal), math.sqrt(s.prior_base / 3.0), math.sqrt(s.prior_rough),
+             math.sqrt(s.prior_metal)]
+
+    def residuals(t, rows):
+        sub = part if len(rows) == n else _Rows(part, rows)
+        r_fixed, m_fixed = (None, None) if brdf else (rough_logit[rows], metal_logit[rows])
+        px = PixelParams(t[:, 0:2], t[:, 2:5], t[:, 5] if brdf else r_fixed, t[:, 6] if brdf else m_fixed)
+        nrm, b = px.normal(), px.base()
+        r = px.rough() if brdf else sub.r0
+        m = px.metal() if brdf else sub.m0
+        res = _shade(lights, sub.pos, nrm, b, r, m) - sub.obs
+        res = torch.where(sub.sat & (res > 0), torch.zeros_like(res), res)
+        prior = [roots[0] * (nrm - sub.n0), roots[1] * (torch.log(b + 0.02) - torch.log(sub.b0 + 0.02))]
+        if brdf:
+            prior += [roots[2] * (r - sub.r0)[:, None], roots[3] * (m - sub.m0)[:, None]]
+        return res.permute(1, 0, 2).reshape(len(t), -1), torch.cat(prior, 1)
+
+    k = part.obs.shape[0]
+    dev = theta.device
+    channel = torch.arange(3, device=dev)
+    # base colour channel c moves only the photos' channel c and its own prior entry: one tangent for all three
+    shared = ([2, 3, 4], channel.repeat(k), torch.cat([torch.full((3,), -1, device=dev), channel,
+                                                      torch.full((2 if brdf else 0,), -1, device=dev)]))
+    theta = levenberg_marquardt(residuals, theta, part.weight / 3.0, c, iters, on_step=on_step, shared=shared,
+                                tol=s.pixel_tol)
+    out = [theta[:, 0:2], theta[:, 2:5]]
+    out += [theta[:, 5], theta[:, 6]] if brdf else [rough_logit, metal_logit]
+    return [t.contiguous() for t in out]
 
 
 def _predict(torch, prob: _Problem, px, lights, s) -> np.ndarray:

@@ -1,0 +1,160 @@
+"""Many small independent least-squares problems at once: Levenberg-Marquardt per pixel (torch, any device).
+
+Once the lights are fixed every pixel of the fit is its own problem in a handful of parameters (normal gradient,
+base colour, roughness, metallic: 7). :func:`levenberg_marquardt` solves N of them together: forward-mode
+Jacobians (one ``torch.func.jvp`` per parameter, all pixels at once), a Gauss-Newton system per pixel with the
+Cauchy loss's iteratively reweighted least-squares weights, its damping adapted per pixel (a step is kept only
+where it lowers that pixel's loss), and the P x P systems solved by :func:`cholesky_solve`, written out
+elementwise over the pixels so that the result does not depend on how a BLAS splits the work (the fit must be
+bit-for-bit repeatable for a seed).
+
+Measured against the Adam solve it replaced (docs/refine.md, session 17): a glossy dome at 256^2 reaches a
+re-render of 43.3 dB in 10 + 10 iterations where 100 + 150 Adam steps reached 34.8 dB.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+
+def cholesky_solve(h: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """Solve ``h x = g`` for every row: h (N, P, P) symmetric positive definite, g (N, P) -> x (N, P).
+
+    Elementwise over N (no batched LAPACK call), so the result is the same whatever the batch size or alignment.
+    Pivots are clamped at 1e-12 (a semi-definite ``h`` gives a finite answer).
+    """
+    if h.ndim != 3 or h.shape[1] != h.shape[2] or g.shape != h.shape[:2]:
+        raise ValueError(f"h must be (N, P, P) and g (N, P), got {tuple(h.shape)} and {tuple(g.shape)}")
+    p = g.shape[1]
+    low = [[None] * p for _ in range(p)]
+    for j in range(p):
+        acc = h[:, j, j]
+        for k in range(j):
+            acc = acc - low[j][k] * low[j][k]
+        d = acc.clamp(min=1e-12).sqrt()
+        low[j][j] = d
+        for i in range(j + 1, p):
+            acc = h[:, i, j]
+            for k in range(j):
+                acc = acc - low[i][k] * low[j][k]
+            low[i][j] = acc / d
+    y = []
+    for i in range(p):
+        acc = g[:, i]
+        for k in range(i):
+            acc = acc - low[i][k] * y[k]
+        y.append(acc / low[i][i])
+    x = [None] * p
+    for i in reversed(range(p)):
+        acc = y[i]
+        for k in range(i + 1, p):
+            acc = acc - low[k][i] * x[k]
+        x[i] = acc / low[i][i]
+    return torch.stack(x, 1)
+
+
+ResidualFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+Shared = tuple[list[int], torch.Tensor, torch.Tensor]
+LAM_DONE = 1e3  # rejected steps count toward "done" once the damping has grown to this
+
+
+def robust_loss(robust: torch.Tensor, quadratic: torch.Tensor, weight: torch.Tensor, scale: float) -> torch.Tensor:
+    """Per-problem loss (N,): ``weight * sum log(1 + (robust / scale)^2) + sum quadratic^2``.
+
+    robust (N, M): residuals under the Cauchy loss; quadratic (N, Q): residuals under a plain square (priors);
+    weight (N,).
+    """
+    return torch.log1p((robust / scale) ** 2).sum(1) * weight + (quadratic * quadratic).sum(1)
+
+
+def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torch.Tensor, scale: float,
+                        iters: int, damping: float = 1e-2, on_step: Callable[[float], None] | None = None,
+                        shared: Shared | None = None, tol: float = 1e-4) -> torch.Tensor:
+    """Minimise :func:`robust_loss` of ``residuals(theta)`` for N independent problems of P parameters.
+
+    residuals: (theta (n, P), rows (n,) int64) -> (robust (n, M), quadratic (n, Q)) of the problems ``rows``
+    (their parameters ``theta``), row i depending on theta[i] alone;
+    theta: (N, P) start; weight (N,) and scale: of the robust part. Returns theta (N, P) after ``iters``
+    iterations. Each iteration: the forward-mode Jacobian (one tangent per parameter, all of them in one
+    vectorised ``jvp``), the Gauss-Newton system with weights ``2 weight / (scale^2 + r^2)`` (the Cauchy loss's
+    IRLS weights, so the step is a descent direction) damped by ``lambda * diag`` (Marquardt), one trial step; a
+    problem keeps the step only if its loss went down (then lambda / 3, else lambda * 4, per problem).
+    A problem whose loss went down by at most ``tol`` of itself in two iterations in a row (steps that gained
+    nothing, or rejected with lambda >= LAM_DONE) is done and drops out: later iterations cost only what still
+    moves.
+    ``on_step(mean loss)`` after each iteration.
+
+    shared: (params, robust_owner (M,), quadratic_owner (Q,)): parameters that move disjoint residual entries
+    (a colour's three channels) share one tangent; entry e's derivative is credited to ``params[owner[e]]``.
+    """
+    if theta.ndim != 2:
+        raise ValueError(f"theta must be (N, P), got {tuple(theta.shape)}")
+    n, p = theta.shape
+    theta = theta.detach().clone()
+    weight = weight.detach()
+    dev, dt = theta.device, theta.dtype
+    every = torch.arange(n, device=dev)
+    c2 = scale * scale
+    lam = torch.full((n,), damping, dtype=dt, device=dev)
+    stalls = torch.zeros(n, dtype=torch.int64, device=dev)
+    eye = torch.arange(p, device=dev)
+    with torch.no_grad():
+        loss = robust_loss(*residuals(theta, every), weight, scale)
+    groups = [[j] for j in range(p) if shared is None or j not in shared[0]]
+    if shared is not None:
+        groups.append(list(shared[0]))
+    active = every
+    for _ in range(iters):
+        if len(active) == 0:
+            if on_step is not None:
+                on_step(float(loss.mean()))
+            continue
+        m = len(active)
+        th = theta[active]
+        tangents = torch.zeros((len(groups), m, p), dtype=dt, device=dev)
+        for g, params in enumerate(groups):
+            tangents[g, :, params] = 1.0
+        (r, q), (dr, dq) = torch.func.vmap(lambda t: torch.func.jvp(lambda x: residuals(x, active), (th,),
+                                                                    (t,)))(tangents)
+        r, q = r[0], q[0]
+        jr, jq = [None] * p, [None] * p
+        for g, params in enumerate(groups):
+            if len(params) == 1:
+                jr[params[0]], jq[params[0]] = dr[g], dq[g]
+                continue
+            for i, j in enumerate(params):  # entries owned by another parameter of the group: zero
+                jr[j] = dr[g] * (shared[1] == i).to(dt)
+                jq[j] = dq[g] * (shared[2] == i).to(dt)
+        r, q = r.detach(), q.detach()
+        w = weight[active, None] * 2.0 / (c2 + r * r)  # IRLS weight: rho'(r) / r of weight * log(1 + r^2 / c^2)
+        wr = w * r
+        grad = torch.stack([(wr * jr[i]).sum(1) + 2.0 * (q * jq[i]).sum(1) for i in range(p)], 1)
+        hess = torch.empty((m, p, p), dtype=dt, device=dev)
+        for i in range(p):
+            wj = w * jr[i]
+            for j in range(i, p):
+                v = (wj * jr[j]).sum(1) + 2.0 * (jq[i] * jq[j]).sum(1)
+                hess[:, i, j] = v
+                hess[:, j, i] = v
+        diag = torch.diagonal(hess, dim1=1, dim2=2).clone()
+        lam_a = lam[active]
+        hess[:, eye, eye] = diag * (1.0 + lam_a[:, None]) + 1e-6
+        trial = th - cholesky_solve(hess, grad)
+        with torch.no_grad():
+            trial_loss = robust_loss(*residuals(trial, active), weight[active], scale)
+        old = loss[active]
+        better = torch.isfinite(trial_loss) & (trial_loss < old)
+        theta[active] = torch.where(better[:, None], trial, th)
+        new = torch.where(better, trial_loss, old)
+        loss[active] = new
+        lam_a = torch.where(better, lam_a / 3.0, lam_a * 4.0).clamp(1e-6, 1e6)
+        lam[active] = lam_a
+        # done: a step that gained (almost) nothing, or rejected once the damping is large (a small step
+        # rejected is only a step too long)
+        stalled = ((old - new) <= tol * old) & (better | (lam_a >= LAM_DONE))
+        stalls[active] = torch.where(stalled, stalls[active] + 1, torch.zeros_like(stalls[active]))
+        active = active[stalls[active] < 2]
+        if on_step is not None:
+            on_step(float(loss.mean()))
+    return theta

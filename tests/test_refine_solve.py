@@ -1,0 +1,152 @@
+"""matcap.refine.solve: the batched Cholesky solve and the per-pixel Levenberg-Marquardt."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from matcap.refine.solve import cholesky_solve, levenberg_marquardt, robust_loss
+
+
+def _spd(n: int, p: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    a = torch.randn(n, p, p, generator=g, dtype=torch.float64)
+    return a @ a.transpose(1, 2) + 0.1 * torch.eye(p, dtype=torch.float64)
+
+
+def test_cholesky_solve_matches_torch_linalg():
+    h = _spd(50, 7)
+    g = torch.randn(50, 7, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    x = cholesky_solve(h, g)
+    assert torch.allclose(x, torch.linalg.solve(h, g), atol=1e-9, rtol=1e-9)
+
+
+def test_cholesky_solve_does_not_depend_on_the_batch():
+    h = _spd(40, 5).float()
+    g = torch.randn(40, 5, generator=torch.Generator().manual_seed(2))
+    whole = cholesky_solve(h, g)
+    parts = torch.cat([cholesky_solve(h[:13], g[:13]), cholesky_solve(h[13:], g[13:])])
+    assert torch.equal(whole, parts)
+
+
+def test_cholesky_solve_bad_shapes():
+    with pytest.raises(ValueError, match=r"\(N, P, P\).*\(3, 4, 4\) and \(3, 5\)"):
+        cholesky_solve(torch.eye(4).expand(3, 4, 4), torch.zeros(3, 5))
+
+
+def _exp_problem(seed: int = 0, outliers: bool = False):
+    """200 problems y_i = a exp(-b t_i) at 12 samples t_i, each with its own (a, b)."""
+    g = torch.Generator().manual_seed(seed)
+    n = 200
+    a = 0.5 + torch.rand(n, generator=g, dtype=torch.float64)
+    b = 0.2 + torch.rand(n, generator=g, dtype=torch.float64)
+    t = torch.linspace(0.0, 4.0, 12, dtype=torch.float64)
+    y = a[:, None] * torch.exp(-b[:, None] * t[None])
+    if outliers:
+        y[:, 3] += 2.0  # one gross outlier per problem
+    return a, b, t, y
+
+
+def test_levenberg_marquardt_recovers_independent_problems():
+    a, b, t, y = _exp_problem()
+
+    def residuals(theta, rows):
+        pred = theta[:, :1] * torch.exp(-theta[:, 1:2] * t[None])
+        return pred - y[rows], torch.zeros_like(theta[:, :0])
+
+    start = torch.stack([torch.ones_like(a), torch.full_like(b, 0.7)], 1)
+    every = torch.arange(len(a))
+    loss0 = robust_loss(*residuals(start, every), torch.ones_like(a), 0.1)
+    out = levenberg_marquardt(residuals, start, torch.ones_like(a), 0.1, iters=25, tol=0.0)
+    assert torch.allclose(out[:, 0], a, atol=1e-6) and torch.allclose(out[:, 1], b, atol=1e-6)
+    assert robust_loss(*residuals(out, every), torch.ones_like(a), 0.1).max() < 1e-10 < float(loss0.min())
+
+
+def test_levenberg_marquardt_ignores_an_outlier_and_honours_a_prior():
+    a, b, t, y = _exp_problem(outliers=True)
+    w = torch.ones_like(a)
+
+    def residuals(theta, rows):
+        pred = theta[:, :1] * torch.exp(-theta[:, 1:2] * t[None])
+        return pred - y[rows], torch.zeros_like(theta[:, :0])
+
+    start = torch.stack([torch.ones_like(a), torch.full_like(b, 0.7)], 1)
+    out = levenberg_marquardt(residuals, start, w, 0.05, iters=40)
+    assert (out[:, 0] - a).abs().max() < 0.01 and (out[:, 1] - b).abs().max() < 0.01  # least squares: ~0.2 off
+    lsq = levenberg_marquardt(residuals, start, w, 1e3, iters=40)  # a huge scale: plain least squares
+    assert (lsq[:, 0] - a).abs().mean() > 0.05
+
+    # a strong quadratic prior on a pulls it to 1 whatever the photos say
+    def with_prior(theta, rows):
+        r, _ = residuals(theta, rows)
+        return r, 100.0 * (theta[:, :1] - 1.0)
+
+    held = levenberg_marquardt(with_prior, start, w, 0.05, iters=40)
+    assert (held[:, 0] - 1.0).abs().max() < 0.01
+
+
+def test_levenberg_marquardt_shared_tangent_gives_the_same_answer():
+    """Three 'channels' each with its own gain (parameters 1-3 move disjoint entries) and a common decay."""
+    g = torch.Generator().manual_seed(3)
+    n, t = 100, torch.linspace(0.0, 3.0, 8, dtype=torch.float64)
+    gain = 0.5 + torch.rand(n, 3, generator=g, dtype=torch.float64)
+    decay = 0.3 + torch.rand(n, 1, generator=g, dtype=torch.float64)
+    y = (gain[:, None, :] * torch.exp(-decay[:, :, None] * t[None, :, None])).reshape(n, -1)  # (n, 8 * 3)
+
+    def residuals(theta, rows):
+        pred = theta[:, None, 1:4] * torch.exp(-theta[:, 0:1, None] * t[None, :, None])
+        return pred.reshape(len(rows), -1) - y[rows], 0.1 * (theta[:, 1:4] - 1.0)
+
+    start = torch.cat([torch.full((n, 1), 0.8, dtype=torch.float64), torch.ones(n, 3, dtype=torch.float64)], 1)
+    w = torch.ones(n, dtype=torch.float64)
+    plain = levenberg_marquardt(residuals, start, w, 0.1, iters=15)
+    owner = torch.arange(3).repeat(8)
+    shared = levenberg_marquardt(residuals, start, w, 0.1, iters=15, shared=([1, 2, 3], owner, torch.arange(3)))
+    assert torch.allclose(plain, shared, atol=1e-9)
+    assert (plain[:, 0:1] - decay).abs().max() < 0.05
+
+
+def test_levenberg_marquardt_never_raises_the_loss_and_reports_it():
+    a, b, t, y = _exp_problem(seed=4)
+    seen = []
+
+    def residuals(theta, rows):
+        pred = theta[:, :1] * torch.exp(-theta[:, 1:2] * t[None])
+        return pred - y[rows], 0.01 * theta
+
+    start = torch.stack([torch.full_like(a, 3.0), torch.full_like(b, 2.5)], 1)
+    levenberg_marquardt(residuals, start, torch.ones_like(a), 0.1, iters=12, on_step=seen.append)
+    assert len(seen) == 12 and all(math.isfinite(x) for x in seen)
+    assert all(later <= earlier + 1e-12 for earlier, later in zip(seen, seen[1:]))
+    assert seen[-1] < 0.05 * seen[0]
+
+
+def test_levenberg_marquardt_bad_theta():
+    with pytest.raises(ValueError, match=r"theta must be \(N, P\), got \(5,\)"):
+        levenberg_marquardt(lambda th, rows: (th, th), torch.zeros(5), torch.ones(5), 0.1, iters=1)
+
+
+def test_levenberg_marquardt_drops_finished_problems():
+    """Problems that have converged stop being evaluated; the others carry on to the same answer."""
+    a, b, t, y = _exp_problem(seed=5)
+    y = y + 1e-3 * torch.sin(torch.arange(y.numel(), dtype=y.dtype)).reshape(y.shape)  # no loss reaches 0
+    start = torch.stack([torch.ones_like(a), torch.full_like(b, 0.7)], 1)
+    start[:100] = torch.stack([a[:100], b[:100]], 1) + 1e-3  # half of them start next to their answer
+
+    def run(tol):
+        sizes = []
+
+        def residuals(theta, rows):
+            sizes.append(len(rows))
+            pred = theta[:, :1] * torch.exp(-theta[:, 1:2] * t[None])
+            return pred - y[rows], torch.zeros_like(theta[:, :0])
+
+        return levenberg_marquardt(residuals, start, torch.ones_like(a), 0.1, iters=30, tol=tol), sizes
+
+    out, sizes = run(1e-4)
+    assert (out - torch.stack([a, b], 1)).abs().max() < 5e-3  # the noise moves the answer a little
+    assert sizes[0] == 200 and sizes[-1] < 100
+    every_out, every = run(-1.0)  # never done
+    assert min(every) == 200 and sum(every) > 1.5 * sum(sizes)
+    assert (every_out - out).abs().max() < 1e-4
