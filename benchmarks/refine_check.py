@@ -14,7 +14,7 @@
                                                            # Mitsuba under 12 known lights: is the fit trusted?
     python benchmarks/refine_check.py detail [--crops docs/images/detail_crops.png]  # a dome carrying a CC0 normal
                                                            # map's fine detail: is it brought back? (crops figure)
-    ... --set light_iters=0 --set prior_target=network     # any RefineSettings field (all but timing)
+    ... --set light_iters=0 --set prior_target=network     # any RefineSettings field
 
 Every row runs the bundled networks first (the "before"), then :func:`matcap.refine.refine` (the "after").
 ``--threads`` sets torch's CPU threads (default: torch's own choice).
@@ -22,6 +22,7 @@ Every row runs the bundled networks first (the "before"), then :func:`matcap.ref
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import resource
 import subprocess
@@ -398,7 +399,8 @@ def _env_photos(truth, lights=None, fixed: bool = False):
 
 
 def timing(args) -> None:
-    """One refine at side^2 with K=16 in a fresh subprocess: seconds and peak RSS."""
+    """One refine at side^2 with K=16 in a fresh subprocess: seconds and peak RSS (``--set`` applies)."""
+    settings = json.dumps(dataclasses.asdict(_settings(args)))
     code = f"""
 import json, resource, time, numpy as np, torch
 {'torch.set_num_threads(%d)' % args.threads if args.threads else ''}
@@ -422,7 +424,7 @@ photos = np.zeros((k, side, side, 3), np.float32); photos[:, m] = px
 start = S.perturb(truth)
 rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 t0 = time.perf_counter()
-res = refine(list(photos), start, RefineSettings(seed=0))
+res = refine(list(photos), start, RefineSettings(**json.loads({settings!r})))
 lin = res.report["linear"] or {{}}
 path = ("first check: " + ("fitted" if lin.get("trusted") else "kept") if "check" not in lin else
         lin["check"] + " look kept")
