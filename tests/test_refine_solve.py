@@ -150,3 +150,56 @@ def test_levenberg_marquardt_drops_finished_problems():
     every_out, every = run(-1.0)  # never done
     assert min(every) == 200 and sum(every) > 1.5 * sum(sizes)
     assert (every_out - out).abs().max() < 1e-4
+
+
+def test_the_pixel_solve_converges_where_adam_did_not():
+    """The fit's per-pixel stage alone (true lights given), on a glossy sphere rendered by the fit's own model from
+    perturbed maps: 20 Levenberg-Marquardt iterations reach a loss below half of what 150 Adam steps (the old
+    default) reached (measured 0.074 against 0.281; Adam after 1000 steps: 0.253) and normals within 1 degree
+    (measured 0.87; Adam 1.25)."""
+    import dataclasses
+
+    import numpy as np
+
+    import matcap.refine.fit as F
+    from matcap.evaluation.metrics import angular_error_map
+    from matcap.evaluation.toy import cone_lights
+    from matcap.refine import RefineSettings
+    from matcap.refine import synthetic as S
+    from matcap.refine.model import LightParams, PixelParams, shade_directional
+
+    truth = S.sphere_maps(48)
+    m = truth.mask
+    k = 12
+    dirs = torch.from_numpy(cone_lights(k, 50.0, seed=1)).float()
+    irr = torch.full((k, 3), 2.5)
+    with torch.no_grad():
+        px = shade_directional(torch.from_numpy(truth.normal[m]), torch.from_numpy(truth.base_color[m]),
+                               torch.full((int(m.sum()),), 0.25), torch.zeros(int(m.sum())), dirs, irr,
+                               torch.zeros(1, 9, 3)).numpy()
+    scale = 0.5 / float(px.mean())
+    obs = np.zeros((k,) + m.shape + (3,), np.float32)
+    obs[:, m] = px * scale
+    start = S.perturb(truth)
+    prob = F._Problem(torch, obs, m, F._maps_arrays(start), np.ones(m.shape, np.float32),
+                      np.full((k, 3), np.inf, np.float32), torch.device("cpu"))
+    lights = LightParams("directional", dirs.clone(), torch.log(irr * scale), torch.zeros(1, 9, 3))
+    px0 = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
+
+    def solve(settings, iters):
+        out = F._solve_pixels(torch, prob, px0, lights, settings, settings.cauchy, iters, F._Bar(None, settings),
+                              "maps")
+        normal = np.zeros(m.shape + (3,), np.float32)
+        normal[m] = out.normal().detach().numpy()
+        with torch.no_grad():
+            per, _ = F._loss(torch, prob, out, lights, settings, settings.cauchy)
+        return float(angular_error_map(normal, truth.normal, m)[m].mean()), float(per.mean())
+
+    s = RefineSettings(seed=0)
+    assert s.pixel_solver == "lm"
+    err_lm10, loss_lm10 = solve(s, 10)
+    err_lm, loss_lm = solve(s, 20)
+    err_adam, loss_adam = solve(dataclasses.replace(s, pixel_solver="adam"), 150)
+    assert angular_error_map(start.normal, truth.normal, m)[m].mean() > 5.0
+    assert loss_lm <= loss_lm10 and loss_lm < 0.5 * loss_adam, (loss_lm, loss_lm10, loss_adam)
+    assert err_lm < 1.0 < err_adam, (err_lm, err_adam)
