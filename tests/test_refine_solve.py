@@ -203,3 +203,16 @@ def test_the_pixel_solve_converges_where_adam_did_not():
     assert angular_error_map(start.normal, truth.normal, m)[m].mean() > 5.0
     assert loss_lm <= loss_lm10 and loss_lm < 0.5 * loss_adam, (loss_lm, loss_lm10, loss_adam)
     assert err_lm < 1.0 < err_adam, (err_lm, err_adam)
+
+
+def test_an_unknown_pixel_solver_is_one_line():
+    import numpy as np
+
+    from matcap.errors import MatcapError
+    from matcap.refine import RefineSettings, refine
+    from matcap.refine import synthetic as S
+
+    truth = S.sphere_maps(16)
+    photos = [np.where(truth.mask[..., None], np.full(3, 0.2 + 0.1 * k), 0.0).astype(np.float32) for k in range(4)]
+    with pytest.raises(MatcapError, match=r"^pixel_solver must be 'lm' or 'adam', got 'newton'$"):
+        refine(photos, truth, RefineSettings(pixel_solver="newton"))

@@ -633,6 +633,8 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         raise MatcapError(f"ambiguity must be 'integrability' or 'prior', got {s.ambiguity!r}")
     if s.prior_target not in ("network", "aligned", "photos"):
         raise MatcapError(f"prior_target must be 'network', 'aligned' or 'photos', got {s.prior_target!r}")
+    if s.pixel_solver not in ("lm", "adam"):
+        raise MatcapError(f"pixel_solver must be 'lm' or 'adam', got {s.pixel_solver!r}")
     start = start_l = None
     linear = linear_report = None
     if s.light_init == "linear":  # the factorization (distant lights; near ones start from its solution)
@@ -852,8 +854,6 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
     (``s.pixel_solver`` "lm") or Adam on the same loss (:func:`_loss`)."""
     from matcap.refine.model import PixelParams
 
-    if s.pixel_solver not in ("lm", "adam"):
-        raise MatcapError(f"pixel_solver must be 'lm' or 'adam', got {s.pixel_solver!r}")
     lights = lights.detached()
     out = [t.detach().clone() for t in px0.tensors()]
     n = len(prob)
@@ -906,8 +906,8 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
 
     def residuals(t, rows):
         sub = part if len(rows) == n else _Rows(part, rows)
-        r_fixed, m_fixed = (None, None) if brdf else (rough_logit[rows], metal_logit[rows])
-        px = PixelParams(t[:, 0:2], t[:, 2:5], t[:, 5] if brdf else r_fixed, t[:, 6] if brdf else m_fixed)
+        rl, ml = (t[:, 5], t[:, 6]) if brdf else (rough_logit[rows], metal_logit[rows])
+        px = PixelParams(t[:, 0:2], t[:, 2:5], rl, ml)
         nrm, b = px.normal(), px.base()
         r = px.rough() if brdf else sub.r0
         m = px.metal() if brdf else sub.m0
