@@ -257,9 +257,15 @@ class _Problem:
 
     def part(self, sl) -> "_Problem":
         """The pixels ``sl`` (a slice or an index array) of this problem."""
-        new = object.__new__(_Problem)
-        new.rows, new.cols = self.rows[sl], self.cols[sl]
         tsl = sl if isinstance(sl, slice) else __import__("torch").from_numpy(np.asarray(sl)).to(self.obs.device)
+        new = self.take(tsl)
+        new.rows, new.cols = self.rows[sl], self.cols[sl]
+        return new
+
+    def take(self, tsl) -> "_Problem":
+        """The torch tensors alone at pixels ``tsl`` (a slice or an index tensor on the device), without the pixel
+        coordinates: usable inside ``torch.func`` transforms, where an index cannot become numpy."""
+        new = object.__new__(_Problem)
         new.obs, new.sat = self.obs[:, tsl], self.sat[:, tsl]
         for k in ("weight", "n0", "ns", "b0", "r0", "m0", "pos"):
             setattr(new, k, getattr(self, k)[tsl])
@@ -883,16 +889,6 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
     return PixelParams(*out)
 
 
-class _Rows:
-    """The torch tensors of :class:`_Problem` ``prob`` at pixels ``rows`` (an index tensor; usable inside
-    ``torch.func`` transforms, unlike :meth:`_Problem.part`)."""
-
-    def __init__(self, prob: _Problem, rows):
-        self.obs, self.sat = prob.obs[:, rows], prob.sat[:, rows]
-        for k in ("weight", "n0", "b0", "r0", "m0", "pos"):
-            setattr(self, k, getattr(prob, k)[rows])
-
-
 def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
     """:func:`matcap.refine.solve.levenberg_marquardt` on :func:`_loss` of the pixels ``part``: the same data
     term (Cauchy, clipped highlights a lower bound only, weighted per pixel and averaged over the colour
@@ -908,7 +904,7 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
              math.sqrt(s.prior_metal)]
 
     def residuals(t, rows):
-        sub = part if len(rows) == n else _Rows(part, rows)
+        sub = part if len(rows) == n else part.take(rows)
         rl, ml = (t[:, 5], t[:, 6]) if brdf else (rough_logit[rows], metal_logit[rows])
         px = PixelParams(t[:, 0:2], t[:, 2:5], rl, ml)
         nrm, b = px.normal(), px.base()
