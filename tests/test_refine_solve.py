@@ -1,11 +1,20 @@
 """matcap.refine.solve: the batched Cholesky solve and the per-pixel Levenberg-Marquardt."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
+import numpy as np
 import pytest
 import torch
 
+import matcap.refine.fit as F
+from matcap.errors import MatcapError
+from matcap.evaluation.metrics import angular_error_map
+from matcap.evaluation.toy import cone_lights
+from matcap.refine import RefineSettings, refine
+from matcap.refine import synthetic as S
+from matcap.refine.model import LightParams, PixelParams, shade_directional
 from matcap.refine.solve import cholesky_solve, levenberg_marquardt, robust_loss
 
 
@@ -155,13 +164,6 @@ def test_levenberg_marquardt_drops_finished_problems():
 def _glossy_sphere_problem(side: int = 48):
     """The fit's per-pixel problem for a glossy sphere rendered by its own model under 12 known lights, from
     perturbed maps: (truth, start, problem, lights, start parameters)."""
-    import numpy as np
-
-    import matcap.refine.fit as F
-    from matcap.evaluation.toy import cone_lights
-    from matcap.refine import synthetic as S
-    from matcap.refine.model import LightParams, PixelParams, shade_directional
-
     truth = S.sphere_maps(side)
     m = truth.mask
     k = 12
@@ -186,14 +188,6 @@ def test_the_pixel_solve_converges_where_adam_did_not():
     perturbed maps: 20 Levenberg-Marquardt iterations reach a loss below half of what 150 Adam steps (the old
     default) reached (measured 0.074 against 0.281; Adam after 1000 steps: 0.253) and normals within 1 degree
     (measured 0.87; Adam 1.25)."""
-    import dataclasses
-
-    import numpy as np
-
-    import matcap.refine.fit as F
-    from matcap.evaluation.metrics import angular_error_map
-    from matcap.refine import RefineSettings
-
     truth, start, prob, lights, px0 = _glossy_sphere_problem()
     m = truth.mask
 
@@ -217,11 +211,6 @@ def test_the_pixel_solve_converges_where_adam_did_not():
 
 
 def test_the_pixel_solve_does_not_depend_on_the_chunks():
-    import dataclasses
-
-    import matcap.refine.fit as F
-    from matcap.refine import RefineSettings
-
     _, _, prob, lights, px0 = _glossy_sphere_problem(32)
     outs = []
     for obs in (262144, 12 * 300, 12 * 97):  # one chunk; 300 pixels; 256 (the smallest chunk)
@@ -233,12 +222,6 @@ def test_the_pixel_solve_does_not_depend_on_the_chunks():
 
 
 def test_an_unknown_pixel_solver_is_one_line():
-    import numpy as np
-
-    from matcap.errors import MatcapError
-    from matcap.refine import RefineSettings, refine
-    from matcap.refine import synthetic as S
-
     truth = S.sphere_maps(16)
     photos = [np.where(truth.mask[..., None], np.full(3, 0.2 + 0.1 * k), 0.0).astype(np.float32) for k in range(4)]
     with pytest.raises(MatcapError, match=r"^pixel_solver must be 'lm' or 'adam', got 'newton'$"):
