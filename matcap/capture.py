@@ -163,10 +163,12 @@ def pick_images(n: int, max_images: int | None, seed: int) -> np.ndarray:
 
 
 def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = None, linear: bool = False,
-                 max_side: int | None = None, max_images: int | None = None, seed: int = 0) -> Capture:
+                 max_side: int | None = None, max_images: int | None = None, seed: int = 0,
+                 contrast: float = 1.0) -> Capture:
     """Read the photos of ``folder``; ``mask.*`` / ``*.mask.*`` is the mask unless ``mask`` names one.
 
-    8-bit images are decoded from sRGB unless ``linear``; 16-bit and float images are taken as linear.
+    8-bit images are decoded from sRGB unless ``linear``, after undoing a camera tone curve of ``contrast`` > 1
+    (:func:`matcap.imageio.tone_curve`); 16-bit and float images are taken as linear.
     ``max_side``: each photo is shrunk as soon as it is read (area average in linear light) so that its longer
     side is at most that; ``max_images``: only that many photos, drawn with ``seed`` (:func:`pick_images`), are
     read. Sizes come from the files' headers first, so mixed sizes and a capture too large for the memory
@@ -178,6 +180,7 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
         raise MatcapError(f"{folder}: not a folder of images")
     if max_side is not None:
         check_max_side(max_side)
+    contrast = imageio.check_contrast(contrast)
     photos, skipped, found_mask = [], [], None
     for p in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name)):
         if not p.is_file() or p.suffix.lower() not in imageio.IMAGE_SUFFIXES or p.name.startswith("."):
@@ -207,7 +210,7 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
     for p in photos:
         stored = imageio.read_image(p)
         sizes.append((p.name, stored.pixels.shape[:2]))
-        arr, how = imageio.to_linear_float(stored, decode_srgb_8bit=not linear)
+        arr, how = imageio.to_linear_float(stored, decode_srgb_8bit=not linear, contrast=contrast)
         kinds.add(f"{stored.kind}:{how}")
         del stored
         work_hw = _fit_side(arr.shape[:2], max_side)
@@ -223,17 +226,15 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
             raise MatcapError(f"the mask vanishes at --max-side {max_side}; use a larger value")
     if mask_arr is not None and not mask_arr.any():
         raise MatcapError(f"{mask_path}: the mask is empty")
-    colour = ", ".join(
-        sorted(
-            {
-                "8bit:srgb-decoded": "8-bit sRGB decoded to linear",
-                "8bit:linear": "8-bit taken as linear (--linear)",
-                "16bit:linear": "16-bit taken as linear",
-                "float:linear": "float taken as linear",
-            }[k]
-            for k in kinds
-        )
-    )
+    words = {
+        "8bit:srgb-decoded": "8-bit sRGB decoded to linear",
+        f"8bit:srgb-decoded, tone curve {contrast:.2f} undone": f"8-bit sRGB decoded to linear after undoing a tone "
+                                                                 f"curve of contrast {contrast:.2f}",
+        "8bit:linear": "8-bit taken as linear (--linear)",
+        "16bit:linear": "16-bit taken as linear",
+        "float:linear": "float taken as linear",
+    }
+    colour = ", ".join(sorted(words[k] for k in kinds))
     return Capture(images, [p.name for p in photos], mask_arr, str(mask_path) if mask_path else None, colour, skipped,
                    photo_size_wh=(size[1], size[0]), picked=[int(i) for i in picked])
 
@@ -587,6 +588,7 @@ def capture(
     *,
     mask: str | os.PathLike | None = None,
     linear: bool | None = False,
+    contrast: float = 1.0,
     overwrite: bool = False,
     constants: dict[str, float] | None = None,
     max_side: int | None = None,
@@ -603,7 +605,9 @@ def capture(
     (recorded in ``capture.json`` as ``constant_maps``). ``max_side`` shrinks the photos first so that their
     longer side is at most that many pixels (a quick pass over large photos; maps come out at that size).
     ``linear=None`` with ``refine``: 8-bit photos are decoded as the fit decides (:func:`decide_colour`; recorded
-    in capture.json ``colour_decision``). ``refine`` fits lights and maps to the photos after the networks (:mod:`matcap.refine`; ``refine_settings``
+    in capture.json ``colour_decision``); ``contrast`` > 1: sRGB after undoing a camera tone curve of that
+    contrast (:func:`matcap.imageio.tone_curve`; not with ``linear=True``; nothing is decided then).
+    ``refine`` fits lights and maps to the photos after the networks (:mod:`matcap.refine`; ``refine_settings``
     a :class:`matcap.refine.RefineSettings`) and adds lights.json, fit.json, residual.png, light_variation.png.
     ``relight``: an environment map path, or a dict of :func:`matcap.relight.relight` settings (``env``,
     ``point``, ``spp``, ``size`` ...), or a list of them; each renders ``relight_<name>.exr/.png`` into the result
@@ -618,6 +622,11 @@ def capture(
     from matcap.results import check_not_replacing_inputs, check_output_dir, write_result
 
     constants = {name: check_constant(name, value) for name, value in (constants or {}).items()}
+    contrast = imageio.check_contrast(contrast)
+    if contrast != 1.0:  # a tone curve given: sRGB photos, nothing left to decide
+        if linear:
+            raise MatcapError("--tone-curve undoes a camera's curve over sRGB; it contradicts --linear")
+        linear = False
     if max_side is not None:
         check_max_side(max_side)  # fail before the expensive part
     check_output_dir(out, overwrite)  # fail before the expensive part
@@ -638,7 +647,7 @@ def capture(
                                                            dict(estimate_kwargs, max_images=max_images))
     if cap is None:
         cap = load_capture(folder, mask=mask, linear=bool(linear), max_side=max_side, max_images=max_images,
-                           seed=seed)
+                           seed=seed, contrast=contrast)
     original_wh = list(cap.photo_size_wh)
     if maps is None:
         maps = estimate(cap.images, cap.mask, **estimate_kwargs)
@@ -661,6 +670,7 @@ def capture(
             "mask_file": cap.mask_file,
             "skipped_files": cap.skipped,
             "colour_handling": cap.colour,
+            **({"tone_curve_contrast": contrast} if contrast != 1.0 and "8-bit" in cap.colour else {}),
             **({"colour_decision": colour_decision} if colour_decision else {}),
             "image_size_wh": [cap.images[0].shape[1], cap.images[0].shape[0]],
             "photo_size_wh": original_wh,  # image_size_wh differs from it after --max-side

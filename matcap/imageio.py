@@ -272,21 +272,60 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     return np.asarray(colour.cctf_encoding(np.clip(x, 0.0, 1.0), function="sRGB"), dtype=np.float32)
 
 
-def to_linear_float(img: StoredImage, decode_srgb_8bit: bool = True) -> tuple[np.ndarray, str]:
+def check_contrast(contrast: float) -> float:
+    """A tone-curve contrast (:func:`tone_curve`) as a float, or a one-line :class:`MatcapError`."""
+    try:
+        value = float(contrast)
+    except (TypeError, ValueError):
+        raise MatcapError(f"tone-curve contrast must be a number, got {contrast!r}") from None
+    if not (1.0 <= value <= 4.0):
+        raise MatcapError(f"tone-curve contrast must be between 1 (none) and 4, got {contrast}")
+    return value
+
+
+def tone_curve(x: np.ndarray, contrast: float) -> np.ndarray:
+    """The S-shaped tone curve a camera lays over sRGB-encoded values (0, 0.5 and 1 stay put):
+    ``x^c / (x^c + (1 - x)^c)`` on ``x`` in [0, 1]; ``contrast`` c = 1 is the identity, larger is steeper
+    mid-tones, flatter shadows and highlights. Its inverse is the same curve with 1 / c."""
+    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
+    if contrast == 1.0:
+        return x
+    xc, yc = x ** contrast, (1.0 - x) ** contrast
+    return xc / np.maximum(xc + yc, 1e-300)
+
+
+def undo_tone_curve(y: np.ndarray, contrast: float) -> np.ndarray:
+    """Inverse of :func:`tone_curve`: stored (encoded) values back to plain sRGB-encoded ones."""
+    return tone_curve(y, 1.0 / contrast)
+
+
+def decode_8bit_table(decode_srgb: bool = True, contrast: float = 1.0) -> np.ndarray:
+    """(256,) float32: linear value of every 8-bit code; sRGB-decoded after undoing a tone curve of ``contrast``
+    (1: plain sRGB), or taken as linear (``decode_srgb`` False)."""
+    table = np.arange(256, dtype=np.float32) / np.float32(255.0)  # float32, as decoding every pixel would be
+    if not decode_srgb:
+        return table
+    if contrast != 1.0:
+        table = undo_tone_curve(table, contrast)
+    return srgb_to_linear(table).astype(np.float32)
+
+
+def to_linear_float(img: StoredImage, decode_srgb_8bit: bool = True, contrast: float = 1.0) -> tuple[np.ndarray, str]:
     """Convert a stored image to linear float32 (H, W, 3).
 
-    8-bit images are taken as sRGB-encoded and decoded unless ``decode_srgb_8bit`` is False; 16-bit and float
-    images are taken as linear. Returns the array and a word for what was done (``"srgb-decoded"``,
+    8-bit images are taken as sRGB-encoded and decoded unless ``decode_srgb_8bit`` is False; a camera tone curve of
+    ``contrast`` > 1 (:func:`tone_curve`) is undone first. 16-bit and float images are taken as linear. Returns the
+    array and a word for what was done (``"srgb-decoded"``, ``"srgb-decoded, tone curve C undone"``,
     ``"linear"``).
     """
     arr = img.pixels
     if arr.dtype == np.uint8:
         # a 256-entry table: the same values as decoding every pixel, without float64 temporaries several times
         # the photo's size (a 12,000 x 9,000 photo: 1.3 GB float32 out, nothing more)
-        table = np.arange(256, dtype=np.float32) / np.float32(255.0)
         if decode_srgb_8bit:
-            return srgb_to_linear(table)[arr], "srgb-decoded"
-        return table[arr], "linear"
+            how = "srgb-decoded" if contrast == 1.0 else f"srgb-decoded, tone curve {contrast:.2f} undone"
+            return decode_8bit_table(True, contrast)[arr], how
+        return decode_8bit_table(False)[arr], "linear"
     if arr.dtype == np.uint16:
         x = arr.astype(np.float32)
         x /= np.float32(65535.0)

@@ -35,6 +35,9 @@ def register(sub) -> None:
                     help="take 8-bit images as linear (default: the fit of the photos decides; with --no-refine: "
                          "decode sRGB)")
     cg.add_argument("--srgb", dest="linear", action="store_false", help="decode 8-bit images from sRGB")
+    p.add_argument("--tone-curve", type=float, default=1.0, metavar="C",
+                   help="undo a camera's S-shaped tone curve of contrast C (1-4; default 1: none) before decoding "
+                        "8-bit photos from sRGB (implies --srgb; recorded in capture.json)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu, cuda, cuda:1 (default cpu)")
     p.add_argument("--pixel-samples", type=int, help="pixels per sample set (default: the model's)")
     p.add_argument("--bf16", action="store_true",
@@ -106,7 +109,7 @@ def run(args) -> int:
     export = {"out": args.export, "preset": args.preset} if args.export else None
     maps, out = capture(
         photos, out, mask=args.mask, linear=args.linear if (do_refine or args.linear is not None) else False,
-        overwrite=args.overwrite,
+        contrast=args.tone_curve, overwrite=args.overwrite,
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
         constants=constants, max_side=args.max_side, relight=relight, export=export, refine=do_refine,

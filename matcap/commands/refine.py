@@ -21,6 +21,9 @@ def register(sub) -> None:
                         "whose distance the fit finds, always")
     p.add_argument("--linear", action="store_true", help="take 8-bit photos as linear (default: as the result did)")
     p.add_argument("--srgb", action="store_true", help="decode 8-bit photos from sRGB (default: as the result did)")
+    p.add_argument("--tone-curve", type=float, metavar="C",
+                   help="undo a camera tone curve of contrast C (1-4; 1: none) before decoding 8-bit sRGB photos "
+                        "(default: as the result did)")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--glossy", action=argparse.BooleanOptionalAction, default=True,
@@ -59,8 +62,14 @@ def run(args) -> int:
     if args.linear or args.srgb:
         linear = bool(args.linear)
     else:
-        linear = "--linear" in str(meta.get("colour_handling", ""))
-    cap = load_capture(args.photos, mask=args.mask, linear=linear)
+        linear = "--linear" in str(meta.get("colour_handling", "")) and args.tone_curve is None
+    if args.tone_curve is not None:
+        contrast = args.tone_curve
+    else:
+        contrast = 1.0 if (args.linear or args.srgb) else meta.get("tone_curve_contrast", 1.0)
+    if linear and contrast != 1.0:
+        raise MatcapError("--tone-curve undoes a camera's curve over sRGB; it contradicts --linear")
+    cap = load_capture(args.photos, mask=args.mask, linear=linear, contrast=contrast)
     names = meta.get("inputs") or cap.files
     missing = [n for n in names if n not in cap.files]
     if missing:
@@ -77,6 +86,10 @@ def run(args) -> int:
                                   meta.get("constant_maps") or {}, progress=not args.quiet,
                                   flags=("--glossy", "--light point"))
     refined.meta["tool"] = "matcap refine"
+    refined.meta["colour_handling"] = cap.colour  # as decoded here (--linear / --srgb / --tone-curve may differ)
+    refined.meta.pop("tone_curve_contrast", None)
+    if contrast != 1.0 and "8-bit" in cap.colour:
+        refined.meta["tone_curve_contrast"] = contrast
     write_result(refined, out, overwrite=True, extra_files=writer)
     r = refined.meta["refine"]
     print(f"wrote {out}/ (refined: re-render {r['psnr_db_mean']:.1f} dB, normals moved "
