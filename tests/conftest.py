@@ -167,22 +167,32 @@ def tiny_weights(tmp_path_factory) -> Path:
     return folder
 
 
-def sphere_photos(folder: Path, h: int = 40, w: int = 56, n: int = 4, bits: int = 16, mask: bool = True) -> Path:
-    """A Lambertian sphere under n directional lights, written as PNGs (+ mask.png): a capture folder."""
-    from matcap import imageio
-
-    folder.mkdir(parents=True, exist_ok=True)
+def sphere_geometry(h: int = 40, w: int = 56) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sphere of :func:`sphere_photos` in an h x w image: (x, y) (H, W) its disc coordinates (radius 1),
+    normal (H, W, 3) unit (camera frame)."""
     yy, xx = np.mgrid[0:h, 0:w]
     r = min(h, w) * 0.4
     x, y = (xx - w / 2) / r, (h / 2 - yy) / r
+    return x, y, np.dstack([x, y, np.sqrt(np.clip(1 - x**2 - y**2, 0, 1))])
+
+
+def sphere_photos(folder: Path, h: int = 40, w: int = 56, n: int = 4, bits: int = 16, mask: bool = True, *,
+                  albedo: float = 0.7, background: float = 0.05, spread: float = 0.5, seed: int = 0,
+                  encode=None) -> Path:
+    """A Lambertian sphere (``albedo``) under n directional lights (x and y of each direction uniform in
+    +-``spread`` before normalising), written as PNGs through ``encode`` (linear values -> stored values in [0, 1];
+    default: as they are) (+ mask.png): a capture folder."""
+    from matcap import imageio
+
+    folder.mkdir(parents=True, exist_ok=True)
+    x, y, normal = sphere_geometry(h, w)
     inside = x**2 + y**2 < 1
-    normal = np.dstack([x, y, np.sqrt(np.clip(1 - x**2 - y**2, 0, 1))])
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     for i in range(n):
-        L = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 1.0])
+        L = np.array([rng.uniform(-spread, spread), rng.uniform(-spread, spread), 1.0])
         L /= np.linalg.norm(L)
-        img = np.where(inside[..., None], 0.7 * np.clip(normal @ L, 0, 1)[..., None], 0.05) * np.ones(3)
-        imageio.write_png(folder / f"img_{i:02d}.png", img, bits=bits)
+        img = np.where(inside[..., None], albedo * np.clip(normal @ L, 0, 1)[..., None], background) * np.ones(3)
+        imageio.write_png(folder / f"img_{i:02d}.png", img if encode is None else encode(img), bits=bits)
     if mask:
         imageio.write_png(folder / "mask.png", inside.astype(np.float32), bits=8)
     return folder

@@ -10,6 +10,7 @@ import pytest
 from matcap import imageio
 from matcap.capture import decide_colour, load_capture
 from matcap.errors import MatcapError
+from conftest import sphere_geometry, sphere_photos
 from tests.test_capture import assert_one_line_error, run_cli
 
 
@@ -31,23 +32,10 @@ def test_contrast_outside_1_to_4_is_refused():
             imageio.check_contrast(bad)
 
 
-def _sphere(folder, encode, n: int = 8, h: int = 40, w: int = 56):
-    """A Lambertian sphere (albedo 0.6) under n distant lights, written as 8-bit PNGs through ``encode`` (linear
-    values -> stored values in [0, 1]) with its mask."""
-    folder.mkdir(parents=True, exist_ok=True)
-    yy, xx = np.mgrid[0:h, 0:w]
-    r = min(h, w) * 0.4
-    x, y = (xx - w / 2) / r, (h / 2 - yy) / r
-    inside = x**2 + y**2 < 1
-    normal = np.dstack([x, y, np.sqrt(np.clip(1 - x**2 - y**2, 0, 1))])
-    rng = np.random.default_rng(3)
-    for i in range(n):
-        light = np.array([rng.uniform(-0.7, 0.7), rng.uniform(-0.7, 0.7), 1.0])
-        light /= np.linalg.norm(light)
-        img = np.where(inside[..., None], 0.6 * np.clip(normal @ light, 0, 1)[..., None], 0.0) * np.ones(3)
-        imageio.write_png(folder / f"img_{i:02d}.png", encode(img), bits=8)
-    imageio.write_png(folder / "mask.png", inside.astype(np.float32), bits=8)
-    return folder
+def _sphere(folder, encode, n: int = 8):
+    """A Lambertian sphere (albedo 0.6, black around it) under n distant lights, written as 8-bit PNGs through
+    ``encode`` (linear values -> stored values in [0, 1]) with its mask."""
+    return sphere_photos(folder, n=n, bits=8, albedo=0.6, background=0.0, spread=0.7, seed=3, encode=encode)
 
 
 def test_reading_with_a_tone_curve_undoes_it_before_srgb(tmp_path):
@@ -70,13 +58,10 @@ def test_the_fit_keeps_linear_photos_linear(tmp_path):
     assert record["rms_8bit_linear"] < 0.01 and record["rms_8bit_srgb"] > 2 * record["rms_8bit_linear"], record
 
 
-def _normal_error(result, h: int = 40, w: int = 56) -> float:
+def _normal_error(result) -> float:
     from matcap.formats import load_maps
 
-    yy, xx = np.mgrid[0:h, 0:w]
-    r = min(h, w) * 0.4
-    x, y = (xx - w / 2) / r, (h / 2 - yy) / r
-    truth = np.dstack([x, y, np.sqrt(np.clip(1 - x**2 - y**2, 0, 1))])
+    x, y, truth = sphere_geometry()
     maps = load_maps(result)
     m = maps.mask & (x**2 + y**2 < 0.8)
     return float(np.degrees(np.arccos(np.clip((maps.normal[m] * truth[m]).sum(-1), -1, 1))).mean())
