@@ -153,12 +153,18 @@ def uw(args) -> None:
             return _mean_err(up, ref, m & (np.linalg.norm(up, axis=-1) > 0.5))
 
         before = score(maps.normal)
+        known = None
+        if args.lights:
+            from matcap.capture import read_lights_for
+
+            folder = SHARED / f"uw_{name}"
+            known = read_lights_for(folder / "lights.txt" if args.lights == "txt" else args.lights, folder)
         t0 = time.perf_counter()
-        res = refine(images, maps, _settings(args))
+        res = refine(images, maps, _settings(args), lights=known)
         secs = time.perf_counter() - t0
         after = score(res.maps.normal)
         d = [_angle(_towards(e), l) for e, l in zip(res.lights, obj.light_dirs)]
-        held = refine(images[:-1], maps, _settings(args))
+        held = refine(images[:-1], maps, _settings(args), lights=None if known is None else known.subset(range(11)))
         ho = fit_light_only(images[-1], held.maps, _settings(args))["psnr_db"]
         row = (name, before, after, float(np.median(d)), float(np.max(d)), res.report["psnr_db_mean"], ho, secs)
         rows.append(row)
@@ -169,12 +175,17 @@ def uw(args) -> None:
 
 
 def synthetic(args) -> None:
+    """Normal MAE and BRDF RMSE before -> after the fit on a synthetic split; ``--given-lights``: scenes lit by
+    one directional light per photo get their true directions and relative intensities (the known-lights fit)."""
     from matcap.capture import estimate
     from matcap.evaluation.datasets import load_synthetic_scene
     from matcap.refine import refine
     from matcap.results import read_result
 
     models = _models()
+    if not args.data:
+        sys.exit("synthetic: give --data SPLIT (e.g. `matcap synth --out SPLIT --scenes 48 --resolution 128 --seed 7 "
+                 "--assets ../shared/data --split test`)")
     root = Path(args.data)
     scenes = sorted(p for p in root.iterdir() if p.name.startswith("scene_"))[: args.scenes]
     print(f"`{root}` first {len(scenes)} scenes (all images): normal MAE deg; BRDF RMSE (base colour after a "
@@ -183,12 +194,21 @@ def synthetic(args) -> None:
           "rough after | metal before | metal after | check |")
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     acc = []
+    truths = []
     for sc in scenes:
         obj = load_synthetic_scene(sc)
         gt = read_result(sc)
         maps = estimate(obj.images, obj.mask, models=models, seed=0)
-        res = refine(obj.images, maps, _settings(args))
+        known = None
+        if args.given_lights and obj.light_dirs is not None:  # one directional light per photo: give it
+            from matcap.lightfiles import KnownLights
+
+            known = KnownLights(np.asarray(obj.light_dirs, float), None if obj.light_intensities is None else
+                                np.broadcast_to(np.asarray(obj.light_intensities, float).reshape(len(obj.images), -1),
+                                                (len(obj.images), 3)).copy(), "file", str(sc), "order")
+        res = refine(obj.images, maps, _settings(args), lights=known)
         m = obj.mask & maps.mask
+        truths.append((gt.roughness[m], gt.metallic[m], obj.group, known is not None))
 
         def brdf(mp):
             b, bt = mp.base_color[m], gt.base_color[m]
@@ -200,8 +220,19 @@ def synthetic(args) -> None:
         row = [_mean_err(maps.normal, obj.normal_gt, m), _mean_err(res.maps.normal, obj.normal_gt, m),
                b0[0], b1[0], b0[1], b1[1], b0[2], b1[2]]
         acc.append(row)
-        print(f"| {sc.name} | {obj.group} | " + " | ".join(f"{v:.3f}" for v in row) + f" | {_check(res)} |", flush=True)
+        how = "lights given" if known is not None else _check(res)
+        print(f"| {sc.name} | {obj.group} | " + " | ".join(f"{v:.3f}" for v in row) + f" | {how} |", flush=True)
     print("| **mean** | | " + " | ".join(f"{v:.3f}" for v in np.mean(acc, 0)) + " | |")
+    given = [i for i, t in enumerate(truths) if t[3]]
+    if given:
+        print("| **mean, lights given** | | " + " | ".join(f"{v:.3f}" for v in np.mean([acc[i] for i in given], 0))
+              + f" | {len(given)} scenes |")
+    r_const = float(np.mean(np.concatenate([t[0] for t in truths])))
+    m_const = float(np.mean(np.concatenate([t[1] for t in truths])))
+    rc = np.mean([np.sqrt(((t[0] - r_const) ** 2).mean()) for t in truths])
+    mc = np.mean([np.sqrt(((t[1] - m_const) ** 2).mean()) for t in truths])
+    print(f"\nbest constant over the split: roughness {r_const:.3f} (RMSE {rc:.3f}), metallic {m_const:.3f} "
+          f"(RMSE {mc:.3f})")
 
 
 def samples(args) -> None:
@@ -452,7 +483,12 @@ def main(argv=None) -> int:
     ap.add_argument("--capture", help="ToyPS sphere folder (sphere)")
     ap.add_argument("--objects", default="buddha,cat,gray,horse,owl,rock", help="UW objects (uw)")
     ap.add_argument("--max-side", type=int, default=256, help="photo side for the UW rows (uw; default 256)")
-    ap.add_argument("--data", default="/work/data/test128", help="synthetic split (synthetic)")
+    ap.add_argument("--data", help="synthetic split (synthetic): a folder written by `matcap synth`")
+    ap.add_argument("--given-lights", action="store_true",
+                    help="synthetic: give the fit each directional scene's true lights (the known-lights fit)")
+    ap.add_argument("--lights", metavar="txt|FILE",
+                    help="uw: give the fit known lights: 'txt' each capture's lights.txt, or a light file (e.g. "
+                         "the rig.json of `matcap calibrate uw_chrome`)")
     ap.add_argument("--scenes", type=int, default=8, help="first N scenes (synthetic)")
     ap.add_argument("--side", type=int, default=None, help="image side (timing; dome: default 256)")
     ap.add_argument("--roughness", type=lambda v: [float(x) for x in v.split(",")], default=[0.4, 0.9],

@@ -162,6 +162,41 @@ def pick_images(n: int, max_images: int | None, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, size=max_images, replace=False))
 
 
+def _scan(folder: Path) -> tuple[list[Path], list[str], Path | None]:
+    """(photos in natural file-name order, names skipped, the mask file or None) of a capture folder."""
+    photos, skipped, found_mask = [], [], None
+    for p in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name)):
+        if not p.is_file() or p.suffix.lower() not in imageio.IMAGE_SUFFIXES or p.name.startswith("."):
+            continue
+        stem = p.name[: -len(p.suffix)]
+        if _SKIP.match(stem):
+            if _MASK.match(stem) and found_mask is None:
+                found_mask = p
+            else:
+                skipped.append(p.name)
+            continue
+        photos.append(p)
+    return photos, skipped, found_mask
+
+
+def photo_names(folder: str | os.PathLike) -> list[str]:
+    """File names of a capture folder's photos in the order :func:`load_capture` reads them (natural order; masks
+    and other non-photos left out)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise MatcapError(f"{folder}: not a folder of images")
+    return [p.name for p in _scan(folder)[0]]
+
+
+def read_lights_for(path: str | os.PathLike, folder: str | os.PathLike, picked: Sequence[int] | None = None):
+    """:class:`matcap.lightfiles.KnownLights` of the photos of ``folder`` from the light file ``path`` (rows met
+    with all of the folder's photos, then the ``picked`` ones kept, in their order)."""
+    from matcap.lightfiles import read_light_file
+
+    known = read_light_file(path, photo_names(folder))
+    return known if picked is None else known.subset(picked)
+
+
 def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = None, linear: bool = False,
                  max_side: int | None = None, max_images: int | None = None, seed: int = 0,
                  contrast: float = 1.0) -> Capture:
@@ -181,18 +216,7 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
     if max_side is not None:
         check_max_side(max_side)
     contrast = imageio.check_contrast(contrast)
-    photos, skipped, found_mask = [], [], None
-    for p in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name)):
-        if not p.is_file() or p.suffix.lower() not in imageio.IMAGE_SUFFIXES or p.name.startswith("."):
-            continue
-        stem = p.name[: -len(p.suffix)]
-        if _SKIP.match(stem):
-            if _MASK.match(stem) and found_mask is None:
-                found_mask = p
-            else:
-                skipped.append(p.name)
-            continue
-        photos.append(p)
+    photos, skipped, found_mask = _scan(folder)
     if not photos:
         raise MatcapError(f"{folder}: no images found (PNG, JPEG, TIFF, EXR or HDR)")
     if len(photos) < 2:
@@ -230,7 +254,7 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
         "8bit:srgb-decoded": "8-bit sRGB decoded to linear",
         f"8bit:srgb-decoded, tone curve {contrast:.2f} undone": f"8-bit sRGB decoded to linear after undoing a tone "
                                                                  f"curve of contrast {contrast:.2f}",
-        "8bit:linear": "8-bit taken as linear (--linear)",
+        "8bit:linear": "8-bit taken as linear",
         "16bit:linear": "16-bit taken as linear",
         "float:linear": "float taken as linear",
     }
@@ -596,6 +620,7 @@ def capture(
     export=None,
     refine: bool = False,
     refine_settings=None,
+    lights: str | os.PathLike | None = None,
     **estimate_kwargs,
 ) -> tuple[MaterialMaps, Path]:
     """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`); then, optionally,
@@ -608,7 +633,8 @@ def capture(
     in capture.json ``colour_decision``); ``contrast`` > 1: sRGB after undoing a camera tone curve of that
     contrast (:func:`matcap.imageio.tone_curve`; not with ``linear=True``; nothing is decided then).
     ``refine`` fits lights and maps to the photos after the networks (:mod:`matcap.refine`; ``refine_settings``
-    a :class:`matcap.refine.RefineSettings`) and adds lights.json, fit.json, residual.png, light_variation.png.
+    a :class:`matcap.refine.RefineSettings`) and adds lights.json, fit.json, residual.png, light_variation.png;
+    ``lights``: a light file (:mod:`matcap.lightfiles`) whose lights the fit holds instead of estimating them.
     ``relight``: an environment map path, or a dict of :func:`matcap.relight.relight` settings (``env``,
     ``point``, ``spp``, ``size`` ...), or a list of them; each renders ``relight_<name>.exr/.png`` into the result
     folder. ``export``: a folder, or a dict of :func:`matcap.export.export` settings with ``out`` (``preset``,
@@ -623,12 +649,18 @@ def capture(
 
     constants = {name: check_constant(name, value) for name, value in (constants or {}).items()}
     contrast = imageio.check_contrast(contrast)
+    linear_given = linear is not None or contrast != 1.0  # --linear / --srgb / --tone-curve said it
     if contrast != 1.0:  # a tone curve given: sRGB photos, nothing left to decide
         if linear:
             raise MatcapError("--tone-curve undoes a camera's curve over sRGB; it contradicts --linear")
         linear = False
     if max_side is not None:
         check_max_side(max_side)  # fail before the expensive part
+    known = None
+    if lights is not None:
+        if not refine:
+            raise MatcapError("--lights gives the fit its lights; it has no use with --no-refine")
+        known = read_lights_for(lights, folder)  # every photo of the folder; --max-images picks below
     check_output_dir(out, overwrite)  # fail before the expensive part
     check_not_replacing_inputs(out, folder, mask)  # --overwrite replaces the out folder: never the photos in it
     plans = [relighting.plan(**request) for request in _relight_requests(relight)]
@@ -643,10 +675,14 @@ def capture(
     seed = estimate_kwargs.get("seed", 0)
     colour_decision, cap, maps = None, None, None
     if refine and linear is None:  # neither --linear nor --srgb: let the fit decide for 8-bit photos
+        t0 = time.perf_counter()
         linear, colour_decision, cap, maps = decide_colour(folder, mask, max_side, refine_settings,
-                                                           dict(estimate_kwargs, max_images=max_images))
+                                                           dict(estimate_kwargs, max_images=max_images), known)
+        if colour_decision is not None:
+            colour_decision["seconds"] = round(time.perf_counter() - t0, 3)
+    linear = bool(linear)  # None without the fit: sRGB, the default
     if cap is None:
-        cap = load_capture(folder, mask=mask, linear=bool(linear), max_side=max_side, max_images=max_images,
+        cap = load_capture(folder, mask=mask, linear=linear, max_side=max_side, max_images=max_images,
                            seed=seed, contrast=contrast)
     original_wh = list(cap.photo_size_wh)
     if maps is None:
@@ -657,10 +693,11 @@ def capture(
     used = [cap.files[i] for i in maps.meta["images_used"]]
     refine_writer = None
     if refine:
+        used_lights = None if known is None else known.subset(cap.picked).subset(maps.meta["images_used"])
         maps, refine_writer = refine_maps(maps, [cap.images[i] for i in maps.meta["images_used"]], used,
                                           cap.colour, refine_settings, constants,
                                           progress=bool(estimate_kwargs.get("progress")), seed=seed,
-                                          device=estimate_kwargs.get("device", "cpu"))
+                                          device=estimate_kwargs.get("device", "cpu"), lights=used_lights)
     maps.meta["images_used"] = [cap.picked[i] for i in maps.meta["images_used"]]  # indices among all the photos
     maps.meta.update(
         {
@@ -670,6 +707,8 @@ def capture(
             "mask_file": cap.mask_file,
             "skipped_files": cap.skipped,
             "colour_handling": cap.colour,
+            "decoding": decoding_record(cap, linear, "fit" if colour_decision else "flag" if linear_given else
+                                        "default", contrast),
             **({"tone_curve_contrast": contrast} if contrast != 1.0 and "8-bit" in cap.colour else {}),
             **({"colour_decision": colour_decision} if colour_decision else {}),
             "image_size_wh": [cap.images[0].shape[1], cap.images[0].shape[0]],
@@ -692,12 +731,22 @@ def capture(
     return maps, Path(out)
 
 
-def decide_colour(folder, mask, max_side, settings, estimate_kwargs, pixels: int = 6000):
+def decoding_record(cap: Capture, linear: bool | None, chosen_by: str, contrast: float = 1.0) -> dict[str, Any]:
+    """capture.json ``decoding``: how the photos became linear light, as fields. ``8bit``: "linear" or "srgb"
+    (None when no photo is 8-bit); ``tone_curve_contrast``: the camera curve undone (1: none); ``chosen_by``:
+    "flag" (--linear / --srgb / --tone-curve), "fit" (the colour decision) or "default" (sRGB)."""
+    eight = "8-bit" in cap.colour
+    return {"8bit": ("linear" if linear else "srgb") if eight else None,
+            "tone_curve_contrast": contrast if eight else 1.0, "chosen_by": chosen_by if eight else "flag"}
+
+
+def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None, pixels: int = 6000):
     """(linear?, record, capture, maps) for 8-bit photos given neither --linear nor --srgb: run the networks on the
     sRGB-decoded photos, fit both decodings (a quick fit on ``pixels`` random object pixels) and keep the one whose
     re-render is closer to the photos *as stored* (RMS in 8-bit units / 255). ``capture`` is the photos read the
     chosen way; ``maps`` the networks' maps when they were made from those photos (sRGB chosen), else None, so the
-    caller reads and predicts nothing twice. 16-bit and float photos: (False, None, capture, None)."""
+    caller reads and predicts nothing twice. 16-bit and float photos: (False, None, capture, None). ``known``:
+    the :class:`matcap.lightfiles.KnownLights` of every photo of the folder, held by both quick fits."""
     from matcap.refine import RefineSettings, refine
 
     kwargs = dict(estimate_kwargs, progress=False)
@@ -719,7 +768,8 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, pixels: int
     rmse = {}
     for lin, cap in caps.items():
         images = [cap.images[i] for i in maps.meta["images_used"]]
-        res = refine(images, maps_sub, quick)
+        held = None if known is None else known.subset(cap.picked).subset(maps.meta["images_used"])
+        res = refine(images, maps_sub, quick, lights=held)
         pred = np.clip(res.prediction[:, sub], 0.0, 1.0)
         photo = np.stack([im[sub] for im in images])
         if not lin:
@@ -735,14 +785,15 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, pixels: int
 
 def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,
                 constants: dict[str, float] | None = None, *, progress: bool = False, seed: int = 0,
-                device: str = "cpu", flags: tuple[str, str] = ("--refine-glossy", "--refine-light point")):
+                device: str = "cpu", lights=None):
     """Run :func:`matcap.refine.refine` on ``maps`` (the networks' output) and the photos they came from.
 
     Returns ``(refined maps, writer)``: ``writer(folder)`` writes lights.json / fit.json / residual.png /
     light_variation.png and returns their names. The network maps stay recorded only in capture.json's summary
     (``refine.normal_change_deg_mean``); ``--constant`` maps stay constant. A light-variation warning is printed,
-    and where the maps are kept because the photos are not Lambertian, a note naming the options ``flags`` (the
-    glossy check; point lights, where the near-lamp check did not run) as the calling command spells them.
+    and where the maps are kept, a note saying why and what to do (give the lights; the glossy look, point
+    lights where the near-lamp check did not run).
+    ``lights``: :class:`matcap.lightfiles.KnownLights` of ``images`` (held by the fit), or None (estimated).
     """
     import sys
 
@@ -753,7 +804,7 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     held = {f"prior_{'metal' if k == 'metallic' else 'rough'}": 1e4 for k in (constants or {})}
     if held:  # --constant maps stay where the user put them
         s = dataclasses.replace(s, **held)
-    result = refine(images, maps, s, progress=progress)
+    result = refine(images, maps, s, progress=progress, lights=lights)
     if result.warning:
         print(f"warning: {result.warning}", file=sys.stderr)
     lin = result.report.get("linear") or {}
@@ -764,17 +815,20 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     if result.report.get("kept_network_maps"):
         hint = ""
         if lin.get("lambertian_only") and s.light_model != "point":
-            tips = ([f"a glossy object under a far lamp: try {flags[0]}"] if s.trust_ambient <= 0 else []) + (
-                [] if "near_fit" in lin else [f"a lamp within a few object sizes: try {flags[1]}"])
+            tips = (["a glossy object under a far lamp: try --glossy"] if s.trust_ambient <= 0 else []) + (
+                [] if "near_fit" in lin else ["a lamp within a few object sizes: try --light-model point"])
             hint = f" ({'; '.join(tips)})" if tips else ""
-        print(f"note: refinement kept the networks' maps: {lin.get('reason')}; lights.json is still fitted{hint}",
+        print(f"note: the fit kept the networks' maps: {lin.get('reason')}. Lights you know make the fit "
+              f"well-posed: give them with --lights FILE, or put a mirror ball in the photos (--ball auto){hint}",
               file=sys.stderr)
     refined = result.maps.with_constants(constants or {})
     refined.meta = dict(maps.meta)
     r = result.report
     refined.meta["refine"] = {
+        "lights": lights.record() if lights is not None else {"source": "estimated"},
         "psnr_db_mean": r["psnr_db_mean"], "normal_change_deg_mean": r["normal_change_deg_mean"],
-        "light_model": "point" if lin.get("check") == "near lamps" else s.light_model,  # what was fitted
+        "light_model": ("point" if lin.get("check") == "near lamps" else s.light_model) if lights is None
+        else lights.record()["kind"],  # what was fitted
         "seconds": r["timings"]["total_s"],
         "weak_light_variation_fraction": r["light_variation"]["weak_fraction"],
         "kept_network_maps": r["kept_network_maps"],
@@ -783,7 +837,8 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     refined.meta["timings"] = dict(maps.meta.get("timings", {}), refine_s=r["timings"]["total_s"])
 
     def writer(folder):
-        return write_refine_outputs(folder, result, files, colour)
+        return write_refine_outputs(folder, result, files, colour,
+                                    source=lights.source if lights is not None else "estimated")
 
     return refined, writer
 

@@ -37,7 +37,7 @@ def test_load_capture_colour_handling_and_skips(tmp_path):
     assert cap.skipped == ["normal_gt.png"] and cap.colour == "8-bit sRGB decoded to linear"
     raw = imageio.read_image(folder / "img_00.png").pixels
     assert np.allclose(cap.images[0], imageio.srgb_to_linear(raw / 255.0), atol=1e-6)
-    assert load_capture(folder, linear=True).colour == "8-bit taken as linear (--linear)"
+    assert load_capture(folder, linear=True).colour == "8-bit taken as linear"
     cap16 = load_capture(sphere_photos(tmp_path / "b", bits=16))
     assert cap16.colour == "16-bit taken as linear"
     raw16 = imageio.read_image(tmp_path / "b" / "img_01.png").pixels

@@ -61,7 +61,7 @@ def test_capture_refine_writes_lights_fit_and_diagnostics_and_refine_reruns(tiny
     r2 = run_cli("refine", str(out), str(folder), "--quiet")
     assert_one_line_error(r2, "--overwrite")
     assert (out / "normal.exr").read_bytes() == before
-    r3 = run_cli("refine", str(out), str(folder), "--quiet", "--overwrite", "--light", "point", "--no-glossy")
+    r3 = run_cli("refine", str(out), str(folder), "--quiet", "--overwrite", "--light-model", "point", "--no-glossy")
     assert r3.returncode == 0, r3.stderr
     entries = json.loads((out / "lights.json").read_text())["images"]
     assert all(("position" if e["kind"] == "point" else "direction") in e for e in entries)  # a lamp left

@@ -387,8 +387,8 @@ def test_kept_for_gloss_the_note_names_the_options(glossy_sphere, capsys):
     assert "infinitely far away" in err[0] and "ambient of 8%" in err[0] and "try" not in err[0], err
     refine_maps(start, photos, names, "linear", RefineSettings(seed=0, kept_light_iters=10, trust_ambient=0.0))
     err = capsys.readouterr().err
-    assert "try --refine-glossy" in err and "try --refine-light point" not in err, err
+    assert "try --glossy" in err and "try --light-model point" not in err, err
     unchecked = RefineSettings(seed=0, kept_light_iters=10, near_check=False, trust_ambient=0.0)
-    refine_maps(start, photos, names, "linear", unchecked, flags=("--glossy", "--light point"))
+    refine_maps(start, photos, names, "linear", unchecked)
     err = capsys.readouterr().err
-    assert "try --glossy" in err and "try --light point" in err and "--refine-" not in err, err
+    assert "try --glossy" in err and "try --light-model point" in err and "--lights FILE" in err, err

@@ -57,14 +57,7 @@ def register(sub) -> None:
                    help="after the networks, fit the lights and the maps to the photos (the default; docs/refine.md)")
     g.add_argument("--no-refine", dest="refine", action="store_false",
                    help="keep the networks' maps as they are (no lights.json / fit.json)")
-    p.add_argument("--refine-light", choices=("directional", "point"), default="directional",
-                   help="light model of the refinement: distant lights (default; where they fail to explain the photos, "
-                        "lamps a few object sizes away are tried and kept if they do) or a lamp per photo whose "
-                        "distance the fit finds, always")
-    p.add_argument("--refine-glossy", action=argparse.BooleanOptionalAction, default=True,
-                   help="where a matte surface does not explain the photos and the lamps are not near, fit distant "
-                        "lamps anyway if one lamp per photo and a fixed, faint room light explain them (a glossy "
-                        "object; on by default, --no-refine-glossy keeps the maps there; docs/refine.md)")
+    add_fit_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
     p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")
@@ -72,8 +65,32 @@ def register(sub) -> None:
     p.add_argument("--export", metavar="DIR", help="also export an engine-ready texture set to DIR")
     p.add_argument("--preset", default="gltf", choices=PRESET_NAMES,
                    help="texture-set preset for --export (default gltf; see `matcap export --help`)")
-    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--quiet", action="store_true", help="no progress output (errors and notes still go to stderr)")
     p.set_defaults(func=run)
+
+
+def add_fit_options(p) -> None:
+    """The fit's options, spelled the same in `matcap capture` and `matcap refine`."""
+    p.add_argument("--lights", metavar="FILE",
+                   help="the lights you know, one per photo: a lights.json (from matcap calibrate or a previous "
+                        "capture), an RTI .lp file, or a text table 'x y z [r g b]' per photo (docs/lights.md); the "
+                        "fit holds their directions instead of estimating them")
+    p.add_argument("--light-model", choices=("directional", "point"), default="directional",
+                   help="estimated lights: distant (default; where they fail to explain the photos, lamps a few "
+                        "object sizes away are tried and kept if they do) or a lamp per photo whose distance the fit "
+                        "finds, always")
+    p.add_argument("--glossy", action=argparse.BooleanOptionalAction, default=True,
+                   help="estimated lights: where a matte surface does not explain the photos and the lamps are not "
+                        "near, fit distant lamps anyway if one lamp per photo and a fixed, faint room light explain "
+                        "them (a glossy object; on by default)")
+
+
+def fit_settings(args, light_model: str, glossy: bool):
+    """RefineSettings from the shared fit options."""
+    from matcap.refine import GLOSSY_TRUST_AMBIENT, RefineSettings
+
+    return RefineSettings(light_model=light_model, seed=args.seed, device=args.device,
+                          trust_ambient=GLOSSY_TRUST_AMBIENT if glossy else 0.0)
 
 
 def run(args) -> int:
@@ -94,12 +111,7 @@ def run(args) -> int:
     from matcap.capture import REFINE_BY_DEFAULT
 
     do_refine = REFINE_BY_DEFAULT if args.refine is None else args.refine
-    settings = None
-    if do_refine:
-        from matcap.refine import GLOSSY_TRUST_AMBIENT, RefineSettings
-
-        settings = RefineSettings(light_model=args.refine_light, seed=args.seed, device=args.device,
-                                  trust_ambient=GLOSSY_TRUST_AMBIENT if args.refine_glossy else 0.0)
+    settings = fit_settings(args, args.light_model, args.glossy) if do_refine else None
     spp = {"spp": args.spp} if args.spp is not None else {}
     relight = [{"env": env, **spp} for env in args.relight or []] + [{"point": p, **spp} for p in args.point or []]
     if args.spp is not None and not relight:
@@ -108,12 +120,12 @@ def run(args) -> int:
         check_spp(args.spp)
     export = {"out": args.export, "preset": args.preset} if args.export else None
     maps, out = capture(
-        photos, out, mask=args.mask, linear=args.linear if (do_refine or args.linear is not None) else False,
+        photos, out, mask=args.mask, linear=args.linear,
         contrast=args.tone_curve, overwrite=args.overwrite,
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
         constants=constants, max_side=args.max_side, relight=relight, export=export, refine=do_refine,
-        refine_settings=settings,
+        refine_settings=settings, lights=args.lights,
     )
     t = maps.meta["timings"]
     print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "

@@ -1,7 +1,7 @@
 """`matcap refine RESULT PHOTOS`: fit lights and maps of an existing result to its photos (again)."""
 from __future__ import annotations
 
-import argparse
+from matcap.commands.capture import add_fit_options
 
 
 def register(sub) -> None:
@@ -16,36 +16,29 @@ def register(sub) -> None:
     p.add_argument("photos", help="the photo folder the result came from")
     p.add_argument("--out", help="write the refined result here instead of replacing RESULT")
     p.add_argument("--mask", help="mask image (default: the result's mask.png)")
-    p.add_argument("--light", choices=("directional", "point"), default="directional",
-                   help="light model: distant lights (default; near lamps are tried where they fail) or a lamp per photo "
-                        "whose distance the fit finds, always")
-    p.add_argument("--linear", action="store_true", help="take 8-bit photos as linear (default: as the result did)")
-    p.add_argument("--srgb", action="store_true", help="decode 8-bit photos from sRGB (default: as the result did)")
+    cg = p.add_mutually_exclusive_group()
+    cg.add_argument("--linear", action="store_true", help="take 8-bit photos as linear (default: as the result did)")
+    cg.add_argument("--srgb", action="store_true", help="decode 8-bit photos from sRGB (default: as the result did)")
     p.add_argument("--tone-curve", type=float, metavar="C",
                    help="undo a camera tone curve of contrast C (1-4; 1: none) before decoding 8-bit sRGB photos "
                         "(default: as the result did)")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
-    p.add_argument("--glossy", action=argparse.BooleanOptionalAction, default=True,
-                   help="where a matte surface does not explain the photos and the lamps are not near, fit distant "
-                        "lamps anyway if one lamp per photo and a fixed, faint room light explain them (on by "
-                        "default; docs/refine.md)")
+    add_fit_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace RESULT (or a non-empty --out)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress output (errors and notes still go to stderr)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from pathlib import Path
 
-    from matcap.capture import downscale_arrays, load_capture, refine_maps
+    from matcap.capture import downscale_arrays, load_capture, read_lights_for, refine_maps
+    from matcap.commands.capture import fit_settings
     from matcap.errors import MatcapError
-    from matcap.refine import GLOSSY_TRUST_AMBIENT, RefineSettings
     from matcap.results import check_not_replacing_inputs, check_output_dir, read_result, write_result
     from networks.inference import check_device
 
-    if args.linear and args.srgb:
-        raise MatcapError("--linear and --srgb contradict each other; give one")
     if args.seed < 0:
         raise MatcapError(f"--seed must be 0 or more, got {args.seed}")
     check_device(args.device)
@@ -62,7 +55,7 @@ def run(args) -> int:
     if args.linear or args.srgb:
         linear = bool(args.linear)
     else:
-        linear = "--linear" in str(meta.get("colour_handling", "")) and args.tone_curve is None
+        linear = (meta.get("decoding") or {}).get("8bit") == "linear" and args.tone_curve is None
     if args.tone_curve is not None:
         contrast = args.tone_curve
     else:
@@ -80,11 +73,12 @@ def run(args) -> int:
         if images[0].shape[:2] != maps.shape:
             raise MatcapError(f"{args.photos}: photos are {images[0].shape[1]}x{images[0].shape[0]} but the maps "
                               f"{maps.shape[1]}x{maps.shape[0]}")
-    settings = RefineSettings(light_model=args.light, seed=args.seed, device=args.device,
-                              trust_ambient=GLOSSY_TRUST_AMBIENT if args.glossy else 0.0)
-    refined, writer = refine_maps(maps, images, list(names), cap.colour, settings,
-                                  meta.get("constant_maps") or {}, progress=not args.quiet,
-                                  flags=("--glossy", "--light point"))
+    known = None
+    if args.lights is not None:
+        known = read_lights_for(args.lights, args.photos, [cap.files.index(n) for n in names])
+    settings = fit_settings(args, args.light_model, args.glossy)
+    refined, writer = refine_maps(maps, images, list(names), cap.colour, settings, meta.get("constant_maps") or {},
+                                  progress=not args.quiet, lights=known)
     refined.meta["tool"] = "matcap refine"
     refined.meta["colour_handling"] = cap.colour  # as decoded here (--linear / --srgb / --tone-curve may differ)
     refined.meta.pop("tone_curve_contrast", None)

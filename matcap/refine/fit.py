@@ -485,7 +485,7 @@ def _centre(torch, mask: np.ndarray):
 
 
 def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
-           progress: bool | Callable[[str, int, int, float], None] = False) -> RefineResult:
+           progress: bool | Callable[[str, int, int, float], None] = False, lights=None) -> RefineResult:
     """Fit lights and maps to the photos.
 
     images: K (H, W, 3) float32 linear RGB photos (at the maps' size); maps: the networks' :class:`MaterialMaps`
@@ -505,6 +505,8 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     torch.use_deterministic_algorithms(True, warn_only=True)  # bit-for-bit repeatable for a seed (measured)
     try:
         s = settings or RefineSettings()
+        if lights is not None:
+            return _refine_known(torch, images, maps, s, progress, lights)
         point = s.light_model == "point"
         first = _refine(torch, images, maps, s, progress, near=point)
         lin = first.report.get("linear") or {}
@@ -548,11 +550,199 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
                 return second
             whys.append(why)
         if whys:
-            first.report["linear"] = {**lin, "reason": f"{lin['reason']}; without that part of the check: "
-                                                       + "; ".join(w for w in whys if w), **_looks(tried)}
+            extra = [w for w in dict.fromkeys(whys) if w and w not in lin["reason"]]  # each reason once
+            first.report["linear"] = {**lin, **({"reason": f"{lin['reason']}; without that part of the check: "
+                                                           + "; ".join(extra)} if extra else {}), **_looks(tried)}
         return first
     finally:
         torch.use_deterministic_algorithms(was[0], warn_only=was[1])
+
+
+def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress, known) -> RefineResult:
+    """The fit with lights the user knows (:class:`matcap.lightfiles.KnownLights`, one per photo).
+
+    Stages: (1) lights: the given directions (and point-light positions) are held; the per-photo intensities (or,
+    where the file gives relative intensities, one overall RGB scale) and one ambient shared by every photo are
+    fitted, first by semi-calibrated Lambertian least squares (:func:`known_irradiance`), then jointly with a
+    subsample's maps under the Principled model; (2) the per-pixel solve (:func:`_solve_maps`) from calibrated
+    photometric-stereo normals; (3) outputs. With the lights known there is no bas-relief family to choose from,
+    so nothing is gated: the maps are always the fitted ones.
+    """
+    t_start = time.perf_counter()
+    mask = np.asarray(maps.mask, bool)
+    stack = check_inputs(images, mask)
+    if stack.shape[1:3] != maps.shape:
+        raise MatcapError(f"photos are {stack.shape[2]}x{stack.shape[1]} but the maps {maps.shape[1]}x{maps.shape[0]}")
+    k_count, h, w = stack.shape[:3]
+    if len(known) != k_count:
+        raise MatcapError(f"{len(known)} known lights for {k_count} photos")
+    device = torch.device(s.device)
+    torch.manual_seed(s.seed)
+    rng = np.random.default_rng(s.seed)
+    scale = 0.5 / float(stack[:, mask].mean())
+    obs = stack * scale
+    sat_level = np.array([obs[k][mask].max(axis=0) * 0.999 for k in range(k_count)], np.float32)
+    sat_level = np.where(sat_level > 0, sat_level, np.inf).astype(np.float32)
+    arrays = _maps_arrays(maps)
+    variation = light_variation(stack, mask)
+    frac_weak, warning = variation_warning(variation, mask, s.variation_threshold)
+    weight = np.clip(np.nan_to_num(variation) / s.variation_threshold, 0.1, 1.0).astype(np.float32)
+    bar = _Bar(progress, s, total=0)
+    timings: dict[str, float] = {}
+
+    # ---- 1. lights: intensities and ambient for the given directions
+    t0 = time.perf_counter()
+    f = min(1.0, s.light_side / max(h, w))
+    hw_l = (max(8, round(h * f)), max(8, round(w * f)))
+    if hw_l == (h, w):
+        obs_l, mask_l, arr_l, w_l = obs, mask, arrays, weight
+    else:
+        obs_l, mask_l, arr_l = _downsample(obs, mask, arrays, hw_l)
+        w_l = _resize(weight, hw_l)
+    centre = _centre(torch, mask).numpy().astype(np.float64)
+    directions = np.asarray(known.directions, np.float64)
+    inv_distance = None
+    if known.positions is not None:  # point lights: direction and distance from the object's centre
+        rel = np.asarray(known.positions, np.float64) - centre
+        dist = np.linalg.norm(rel, axis=1)
+        directions, inv_distance = rel / np.maximum(dist, 1e-12)[:, None], 1.0 / np.maximum(dist, 1e-12)
+    given = None if known.intensities is None else np.asarray(known.intensities, np.float64)
+    luma = np.asarray(LUMA, np.float64)
+    rows_l, cols_l = np.nonzero(mask_l)
+    irr = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, arr_l["normal"][rows_l, cols_l],
+                           None if given is None else given @ luma)
+    s_lum = directions * irr[:, None]
+    start, prior, photo_report = _photo_normals(obs, mask, arrays["normal"], s_lum, s)
+    arrays = dict(arrays, normal=prior)
+    if hw_l == (h, w):
+        arr_l, start_l = arrays, start
+    else:
+        start_l, prior_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, s, photo_report)
+        arr_l = dict(arr_l, normal=prior_l)
+    n_l = int(mask_l.sum())
+    idx = np.sort(rng.choice(n_l, size=min(n_l, s.light_pixels), replace=False))
+    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
+    lights = _init_lights(torch, prob, s, device, directions)
+    if inv_distance is not None:
+        lights = _to_near(torch, lights, torch.as_tensor(centre, dtype=torch.float32, device=device))
+        lights.inv_distance = torch.as_tensor(inv_distance, dtype=torch.float32, device=device)
+    given_log = None
+    if given is not None:  # relative intensities: start from them at the least-squares overall scale
+        given_log = torch.as_tensor(np.log(np.maximum(given, 1e-12)), dtype=torch.float32, device=device)
+        lights.log_intensity = given_log + (lights.log_intensity - given_log).mean(0, keepdim=True)
+    lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", s.light_iters, directions_free=False,
+                            relative_to=given_log)
+    timings["lights_s"] = time.perf_counter() - t0
+
+    # ---- 2. per pixel
+    t0 = time.perf_counter()
+    full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
+                                            s.coarse_iters, s.fine_iters)
+    timings["maps_s"] = time.perf_counter() - t0
+    bar.close()
+
+    # ---- 3. outputs
+    t0 = time.perf_counter()
+    out = _outputs(torch, full, px_full, lights, s, scale, maps)
+    timings["outputs_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    report = {
+        "lights": {**known.record(), "directions": "held", "solved_fraction": photo_report["solved_fraction"]},
+        "psnr_db": [round(p, 3) for p in out.psnr],
+        "psnr_db_mean": round(float(np.mean(out.psnr)), 3),
+        "residual_mean": round(float(np.nanmean(out.residual)), 5),
+        "iterations": {"lights": s.light_iters, **iters_done},
+        "pixels": int(mask.sum()),
+        "images": k_count,
+        "normal_change_deg_mean": round(out.normal_change_deg, 3),
+        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(frac_weak, 4),
+                            "warning": warning},
+        "photo_scale": scale,
+        "linear": None,
+        "kept_network_maps": False,
+        "ambient_share": round(out.ambient_share, 4),
+        "timings": {k: round(v, 3) for k, v in timings.items()},
+        "settings": asdict(s),
+    }
+    return RefineResult(out.maps, lights_to_entries(lights, scale), report, out.residual, variation, warning,
+                        out.prediction)
+
+
+def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.ndarray,
+                     relative: np.ndarray | None = None, rounds: int = 4) -> np.ndarray:
+    """Per-photo irradiance (K,) of lights whose directions are known: semi-calibrated Lambertian photometric
+    stereo, alternating the pixels' scaled normals (:func:`matcap.refine.linear.solve_normals`, robust: shadows
+    and highlights weigh little) and each photo's irradiance by least squares over the pixels it lights.
+
+    luminance: (K, P) photo luminance; directions: (K, 3) unit; normal: (P, 3) start normals (the networks');
+    relative: (K,) given relative irradiances (only their overall scale is found) or None. The overall scale is
+    fixed so that the mean irradiance is the photos' mean luminance times pi (the albedo absorbs the rest).
+    """
+    from matcap.refine.linear import solve_normals
+
+    y = np.asarray(luminance, np.float64)
+    d = np.asarray(directions, np.float64)
+    level = max(float(y.mean()) * math.pi, 1e-9)
+    if relative is not None:
+        rel = np.asarray(relative, np.float64)
+        return rel * level / max(float(rel.mean()), 1e-12)
+    e = np.full(len(d), level)
+    for _ in range(rounds):
+        n, alb, solved = solve_normals(y, d * e[:, None], normal)
+        if solved.sum() < 16:
+            break
+        shading = np.clip((n[solved] @ d.T), 0.0, None).T * alb[solved][None]  # (K, P) per unit irradiance
+        lit = shading > 0.05 * np.maximum(shading.max(axis=1, keepdims=True), 1e-12)
+        num = (y[:, solved] * shading * lit).sum(1)
+        den = (shading ** 2 * lit).sum(1)
+        e_new = np.where(den > 1e-12, num / np.maximum(den, 1e-12), e)
+        e = np.clip(e_new, 1e-6, None)
+        e *= level / e.mean()
+    return e
+
+
+def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: str, iters: int,
+                directions_free: bool = True, maps_free: bool = True, relative_to=None):
+    """Adam on the lights (and, with ``maps_free``, the subsample's maps, anchored by the prior) under the full
+    loss :func:`_loss` of the pixels ``prob``. ``directions_free`` False holds the directions (and a near lamp's
+    distance); ``relative_to`` (K, 3) log intensities: only one overall log scale per channel moves. Returns
+    (lights, the last step's mean data term)."""
+    from matcap.refine.model import PixelParams
+
+    px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
+    offset = None
+    light_t = [lights.sh] if s.ambient != "none" else []
+    if relative_to is not None:
+        offset = (lights.log_intensity - relative_to).mean(0, keepdim=True).detach().clone()
+        light_t.append(offset)
+    else:
+        light_t.append(lights.log_intensity)
+    if directions_free:
+        light_t += [lights.vec] + ([lights.inv_distance] if lights.kind == "near" else [])
+    groups = [{"params": light_t, "lr": s.lr_light}]
+    if maps_free:
+        groups.append({"params": px.tensors(), "lr": s.lr_pixel})
+    for g in groups:
+        for t in g["params"]:
+            t.requires_grad_(True)
+    opt = torch.optim.Adam(groups)
+    data_mean = float("nan")
+    bar.add_total(iters)
+    for _ in range(iters):
+        opt.zero_grad()
+        if offset is not None:
+            lights.log_intensity = relative_to + offset
+        per, data = _loss(torch, prob, px, lights, s, s.cauchy, s.fit_brdf)
+        loss = per.mean()
+        loss.backward()
+        opt.step()
+        data_mean = float(data.detach().mean())
+        bar.step(label, float(loss.detach()))
+    if offset is not None:
+        lights.log_intensity = (relative_to + offset).detach()
+    for t in lights.tensors():
+        t.requires_grad_(False)
+    return lights.detached(), data_mean
 
 
 def _near_verdict(found: dict, s: RefineSettings) -> str | None:
@@ -615,7 +805,6 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     sat_level = np.array([obs[k][mask].max(axis=0) * 0.999 for k in range(k_count)], np.float32)
     sat_level = np.where(sat_level > 0, sat_level, np.inf).astype(np.float32)
     arrays = _maps_arrays(maps)
-    network_normal = arrays["normal"]
     variation = light_variation(stack, mask)
     frac_weak, warning = variation_warning(variation, mask, s.variation_threshold)
     weight = np.clip(np.nan_to_num(variation) / s.variation_threshold, 0.1, 1.0).astype(np.float32)
@@ -733,10 +922,70 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
 
     # ---- 2. per pixel, lights fixed: half size, then full size
     t0 = time.perf_counter()
+    coarse_iters, fine_iters, rounds = (s.coarse_iters, s.fine_iters, s.rounds) if trusted else (0, 0, 1)
+    full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
+                                            coarse_iters, fine_iters)
+    for r in range(1, rounds):  # lights again from the refined maps (frozen), then the maps again
+        idx_r = np.sort(rng.choice(len(full), size=min(len(full), s.light_pixels), replace=False))
+        sub = full.part(idx_r)
+        px_sub = PixelParams(*(t[torch.from_numpy(idx_r)].detach() for t in px_full.tensors()))
+        bar.add_total(s.light_iters // 2)
+        lights = joint(lights, s.light_iters // 2, f"lights {r + 1}", sub, px_sub)
+        px_full = _solve_pixels(torch, full, px_full, lights, s, c, s.fine_iters // 2, bar, f"maps {r + 1}")
+        iters_done["fine"] += s.fine_iters // 2
+    timings["maps_s"] = time.perf_counter() - t0
+    bar.close()
+
+    # ---- 3. outputs
+    t0 = time.perf_counter()
+    out = _outputs(torch, full, px_full, lights, s, scale, maps, keep=not trusted)
+    timings["outputs_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    refined, residual, psnr, prediction, share = out.maps, out.residual, out.psnr, out.prediction, out.ambient_share
+    light_entries = lights_to_entries(lights, scale)
+    ratio_run = (near_found or {}).get("loss_ratio") is not None  # the distant lamps ran as long again
+    report = {
+        "psnr_db": [round(p, 3) for p in psnr],
+        "psnr_db_mean": round(float(np.mean(psnr)), 3),
+        "residual_mean": round(float(np.nanmean(residual)), 5),
+        "iterations": {"lights": light_iters + (s.light_iters * (2 if ratio_run else 1) if near else 0), **iters_done},
+        "pixels": int(mask.sum()),
+        "images": k_count,
+        "normal_change_deg_mean": round(out.normal_change_deg, 3),
+        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(frac_weak, 4),
+                            "warning": warning},
+        "photo_scale": scale,
+        "linear": None if linear_report is None else {**linear_report, **({} if linear is None else {
+            "contour_pixels": linear.contour_pixels, "residual": round(linear.residual, 4),
+            "inliers": round(linear.inliers, 4), "spread": round(linear.spread, 5), "ambiguity": s.ambiguity})},
+        "kept_network_maps": not trusted,
+        "ambient_share": round(share, 4),
+        **({"light_distance_median": dist} if near else {}),
+        **({"near_lamps": near_found} if near_found is not None else {}),
+        "timings": {k: round(v, 3) for k, v in timings.items()},
+        "settings": asdict(s),
+    }
+    return RefineResult(refined, light_entries, report, residual, variation, warning, prediction)
+
+
+def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: RefineSettings, bar,
+                coarse_iters: int, fine_iters: int):
+    """The per-pixel stage: every pixel's normal, base colour, roughness and metallic under the fixed ``lights``,
+    Levenberg-Marquardt on a half-size copy first (skipped at 128 px or less), whose corrections are upsampled as
+    the start of the full-size solve.
+
+    obs (K, H, W, 3) photos in fit units; mask (H, W); arrays: the priors ("normal", "base", "rough", "metal");
+    weight (H, W) per-pixel data weight; sat_level (K, 3) clipping levels; start (H, W, 3) start normals or None
+    (the prior's). Returns (the full-size :class:`_Problem`, its :class:`PixelParams`, iterations done).
+    """
+    from matcap.refine.model import PixelParams
+
+    device = torch.device(s.device)
+    h, w = mask.shape
+    c = s.cauchy
     full = _Problem(torch, obs, mask, arrays, weight, sat_level, device, start=start)
     px_full = PixelParams.from_maps(full.ns, full.b0, full.r0, full.m0)
     iters_done = {"coarse": 0, "fine": 0}
-    coarse_iters, fine_iters, rounds = (s.coarse_iters, s.fine_iters, s.rounds) if trusted else (0, 0, 1)
     if coarse_iters > 0 and max(h, w) > 128:
         hw_c = (max(8, h // 2), max(8, w // 2))
         obs_c, mask_c, arr_c = _downsample(obs, mask, arrays if start is None else dict(arrays, start=start), hw_c)
@@ -756,33 +1005,40 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     if fine_iters > 0:
         px_full = _solve_pixels(torch, full, px_full, lights, s, c, fine_iters, bar, "maps")
     iters_done["fine"] = fine_iters
-    for r in range(1, rounds):  # lights again from the refined maps (frozen), then the maps again
-        idx_r = np.sort(rng.choice(len(full), size=min(len(full), s.light_pixels), replace=False))
-        sub = full.part(idx_r)
-        px_sub = PixelParams(*(t[torch.from_numpy(idx_r)].detach() for t in px_full.tensors()))
-        bar.add_total(s.light_iters // 2)
-        lights = joint(lights, s.light_iters // 2, f"lights {r + 1}", sub, px_sub)
-        px_full = _solve_pixels(torch, full, px_full, lights, s, c, s.fine_iters // 2, bar, f"maps {r + 1}")
-        iters_done["fine"] += s.fine_iters // 2
-    timings["maps_s"] = time.perf_counter() - t0
-    bar.close()
+    return full, px_full, iters_done
 
-    # ---- 3. outputs
-    t0 = time.perf_counter()
-    pred = _predict(torch, full, px_full, lights, s)  # (K, N, 3) fit units
+
+@dataclass
+class _Outputs:
+    """The last stage's results: maps (the fitted ones, or the networks' where kept); residual (H, W) RMS
+    re-render error / the photos' mean (NaN off-mask); psnr per photo (dB); prediction (K, H, W, 3) re-renders in
+    photo units; ambient_share (see :func:`ambient_share`); normal_change_deg: mean angle to the networks'."""
+
+    maps: MaterialMaps
+    residual: np.ndarray
+    psnr: list[float]
+    prediction: np.ndarray
+    ambient_share: float
+    normal_change_deg: float
+
+
+def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float, maps: MaterialMaps,
+             keep: bool = False) -> _Outputs:
+    """Re-render the photos under the fitted ``lights`` and maps ``px`` of the pixels ``full`` and assemble the
+    output maps (``keep``: the networks' maps, bit for bit, while the residual still describes the fit)."""
+    mask = np.asarray(maps.mask, bool)
+    h, w = mask.shape
+    k_count = full.obs.shape[0]
+    pred = _predict(torch, full, px, lights, s)  # (K, N, 3) fit units
     n_img = np.zeros((h, w, 3), np.float32)
     base = np.zeros((h, w, 3), np.float32)
     rough = np.zeros((h, w), np.float32)
     metal = np.zeros((h, w), np.float32)
     with torch.no_grad():
-        n_img[full.rows, full.cols] = px_full.normal().cpu().numpy()
-        base[full.rows, full.cols] = px_full.base().cpu().numpy()
-        if s.fit_brdf:
-            rough[full.rows, full.cols] = px_full.rough().cpu().numpy()
-            metal[full.rows, full.cols] = px_full.metal().cpu().numpy()
-        else:
-            rough[full.rows, full.cols] = full.r0.cpu().numpy()
-            metal[full.rows, full.cols] = full.m0.cpu().numpy()
+        n_img[full.rows, full.cols] = px.normal().cpu().numpy()
+        base[full.rows, full.cols] = px.base().cpu().numpy()
+        rough[full.rows, full.cols] = (px.rough() if s.fit_brdf else full.r0).cpu().numpy()
+        metal[full.rows, full.cols] = (px.metal() if s.fit_brdf else full.m0).cpu().numpy()
     obs_px = full.obs.cpu().numpy()
     err = pred - obs_px
     residual = np.full((h, w), np.nan, np.float32)
@@ -795,44 +1051,19 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     prediction = np.zeros((k_count, h, w, 3), np.float32)
     prediction[:, full.rows, full.cols] = pred / scale
     with torch.no_grad():
-        share = ambient_share(torch, lights, full.pos, px_full.normal())
-    timings["outputs_s"] = time.perf_counter() - t0
-    timings["total_s"] = time.perf_counter() - t_start
-
-    light_entries = lights_to_entries(lights, scale)
-    keep_meta = {k: v for k, v in maps.meta.items()}
-    if not trusted:  # the photos cannot correct the networks' maps: they are kept, bit for bit
+        share = ambient_share(torch, lights, full.pos, px.normal())
+    if keep:  # the photos cannot correct the networks' maps: they are kept, bit for bit
         n_img = np.asarray(maps.normal, np.float32).copy()
         kept = maps.with_defaults()
-        base, rough, metal = (np.asarray(v, np.float32).copy() for v in (kept.base_color, kept.roughness, kept.metallic))
+        base, rough, metal = (np.asarray(v, np.float32).copy() for v in (kept.base_color, kept.roughness,
+                                                                        kept.metallic))
     refined = MaterialMaps(normal=n_img, mask=mask, base_color=base,
                            roughness=rough if (maps.roughness is not None or s.fit_brdf) else None,
                            metallic=metal if (maps.metallic is not None or s.fit_brdf) else None,
-                           height=None, meta=keep_meta)
-    ratio_run = (near_found or {}).get("loss_ratio") is not None  # the distant lamps ran as long again
-    n_change = np.degrees(np.arccos(np.clip((n_img[mask] * network_normal[mask]).sum(-1), -1, 1)))
-    report = {
-        "psnr_db": [round(p, 3) for p in psnr],
-        "psnr_db_mean": round(float(np.mean(psnr)), 3),
-        "residual_mean": round(float(np.nanmean(residual)), 5),
-        "iterations": {"lights": light_iters + (s.light_iters * (2 if ratio_run else 1) if near else 0), **iters_done},
-        "pixels": int(mask.sum()),
-        "images": k_count,
-        "normal_change_deg_mean": round(float(n_change.mean()), 3),
-        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(frac_weak, 4),
-                            "warning": warning},
-        "photo_scale": scale,
-        "linear": None if linear_report is None else {**linear_report, **({} if linear is None else {
-            "contour_pixels": linear.contour_pixels, "residual": round(linear.residual, 4),
-            "inliers": round(linear.inliers, 4), "spread": round(linear.spread, 5), "ambiguity": s.ambiguity})},
-        "kept_network_maps": not trusted,
-        "ambient_share": round(share, 4),
-        **({"light_distance_median": dist} if near else {}),
-        **({"near_lamps": near_found} if near_found is not None else {}),
-        "timings": {k: round(v, 3) for k, v in timings.items()},
-        "settings": asdict(s),
-    }
-    return RefineResult(refined, light_entries, report, residual, variation, warning, prediction)
+                           height=None, meta=dict(maps.meta))
+    network = _maps_arrays(maps)["normal"]
+    change = np.degrees(np.arccos(np.clip((n_img[mask] * network[mask]).sum(-1), -1, 1)))
+    return _Outputs(refined, residual, psnr, prediction, share, float(change.mean()))
 
 
 def _median_distance(lights) -> float:
@@ -968,10 +1199,10 @@ def lights_to_entries(lights, scale: float) -> list[dict[str, Any]]:
 class _Bar:
     """tqdm progress with the current loss (or a callback ``progress(label, done, total, loss)``)."""
 
-    def __init__(self, progress, s: RefineSettings, near: bool = False):
+    def __init__(self, progress, s: RefineSettings, near: bool = False, total: int | None = None):
         self.cb = progress if callable(progress) else None
         self.done = 0
-        self.total = s.light_iters * (2 if near else 1)
+        self.total = s.light_iters * (2 if near else 1) if total is None else total
         self.bar = None
         if progress is True:
             from tqdm import tqdm

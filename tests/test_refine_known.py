@@ -1,0 +1,118 @@
+"""The fit with lights the user knows (`refine(..., lights=KnownLights)`, `capture --lights`): a rendered glossy
+sphere's normals and roughness, the intensities, and a capture's lights.json read back through --lights."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from matcap.evaluation.metrics import angular_error_map
+from matcap.lightfiles import KnownLights, read_light_file
+from matcap.refine import RefineSettings, refine
+from matcap.refine import synthetic as S
+from matcap.refine.fit import known_irradiance
+
+
+@pytest.fixture(scope="module")
+def glossy():
+    """The two-material sphere (roughness 0.3 | 0.7) under 12 tinted distant lights and a faint uniform ambient,
+    and a network-like start (normals about 6 degrees off, roughness 0.2 off)."""
+    truth = S.sphere_maps(48)
+    lights = S.known_lights(12)
+    photos = S.render_capture(truth, lights)
+    return truth, lights, photos, S.perturb(truth)
+
+
+def _known(lights, intensities=False) -> KnownLights:
+    d = np.array([l.direction for l in lights], float)
+    i = np.array([l.irradiance for l in lights], float) if intensities else None
+    return KnownLights(d / np.linalg.norm(d, axis=1, keepdims=True), i, "file", "test", "order")
+
+
+@pytest.mark.slow
+def test_known_lights_recover_a_glossy_sphere(glossy):
+    truth, lights, photos, start = glossy
+    res = refine(photos, start, RefineSettings(seed=0), lights=_known(lights))
+    m = truth.mask
+    before = angular_error_map(start.normal, truth.normal, m)[m].mean()
+    after = angular_error_map(res.maps.normal, truth.normal, m)[m].mean()
+    assert before > 5.0 and after < 1.5, (before, after)
+    # roughness where a highlight shows it (elsewhere the photos cannot tell it)
+    n = truth.normal[m]
+    seen = np.zeros(len(n), bool)
+    for l in lights:
+        h = np.asarray(l.direction) + (0, 0, 1)
+        seen |= n @ (h / np.linalg.norm(h)) > np.cos(np.radians(8))
+    assert seen.sum() > 100
+    r_err = np.abs(res.maps.roughness[m] - truth.roughness[m])[seen].mean()
+    assert r_err < 0.05, r_err
+    # directions held exactly; intensities fitted up to one overall scale (the albedo takes the rest)
+    for l, e in zip(lights, res.lights):
+        assert e["kind"] == "directional"
+        np.testing.assert_allclose(e["direction"], np.asarray(l.direction) / np.linalg.norm(l.direction), atol=1e-5)
+    ratio = np.array([e["intensity"] for e in res.lights]) / np.array([l.irradiance for l in lights])
+    assert (ratio.std(0) / ratio.mean(0)).max() < 0.02, ratio
+    assert res.report["lights"]["source"] == "file" and res.report["kept_network_maps"] is False
+    assert res.report["psnr_db_mean"] > 35
+
+
+def test_given_relative_intensities_move_only_one_scale(glossy):
+    truth, lights, photos, start = glossy
+    quick = RefineSettings(seed=0, light_iters=60, coarse_iters=0, fine_iters=5)
+    res = refine(photos, start, quick, lights=_known(lights, intensities=True))
+    ratio = np.array([e["intensity"] for e in res.lights]) / np.array([l.irradiance for l in lights])
+    assert (ratio.std(0) / ratio.mean(0)).max() < 1e-4, ratio  # the given ratios, exactly
+    assert res.report["lights"]["intensities"] == "given"
+
+
+def test_known_irradiance_finds_unequal_lamps():
+    """Semi-calibrated least squares: per-photo irradiances of a Lambertian sphere from the directions alone."""
+    rng = np.random.default_rng(0)
+    x, y = np.meshgrid(np.linspace(-1, 1, 40), np.linspace(-1, 1, 40))
+    inside = x ** 2 + y ** 2 < 0.95
+    n = np.stack([x[inside], y[inside], np.sqrt(1 - x[inside] ** 2 - y[inside] ** 2)], 1)
+    d = np.array([[0.3, 0.2, 1.0], [-0.4, 0.1, 0.9], [0.0, -0.5, 0.8], [0.2, 0.6, 0.7], [-0.5, -0.4, 0.8]])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    e = np.array([1.0, 2.0, 0.7, 1.5, 1.1])
+    albedo = 0.3 + 0.5 * rng.random(len(n))
+    lum = e[:, None] * albedo[None] * np.clip(d @ n.T, 0, None) + rng.normal(0, 0.003, (5, len(n)))
+    flat = np.tile([0.0, 0.0, 1.0], (len(n), 1))
+    found = known_irradiance(lum, d, flat)
+    np.testing.assert_allclose(found / found.mean(), e / e.mean(), rtol=0.02)
+
+
+def test_capture_with_known_lights_round_trips(tmp_path, tiny_weights):
+    """`capture --lights lights.txt` holds them and records the source; its lights.json, given back through
+    --lights, gives the same directions."""
+    from conftest import sphere_photos
+
+    photos = sphere_photos(tmp_path / "photos", n=6, h=32, w=40, spread=0.6, seed=2)
+    names = sorted(p.name for p in photos.iterdir() if p.name.startswith("img"))
+    rng = np.random.default_rng(2)  # the directions sphere_photos drew
+    dirs = []
+    for _ in names:
+        v = np.array([rng.uniform(-0.6, 0.6), rng.uniform(-0.6, 0.6), 1.0])
+        dirs.append(v / np.linalg.norm(v))
+    table = tmp_path / "lights.txt"
+    table.write_text("".join(" ".join(f"{c:.6f}" for c in v) + "\n" for v in dirs))
+    quick = ["--weights", str(tiny_weights), "--quiet", "--linear"]
+    r = subprocess.run([sys.executable, "-m", "matcap", "capture", str(photos), "--out", str(tmp_path / "a"),
+                        "--lights", str(table)] + quick, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    info = json.loads((tmp_path / "a" / "capture.json").read_text())
+    assert info["refine"]["lights"]["source"] == "file" and info["refine"]["lights"]["matched_by"] == "order"
+    doc = json.loads((tmp_path / "a" / "lights.json").read_text())
+    assert doc["source"] == "file"
+    got = np.array([e["direction"] for e in doc["images"]])
+    np.testing.assert_allclose(got, np.array(dirs), atol=1e-5)
+    again = read_light_file(tmp_path / "a" / "lights.json", names)
+    assert again.matched == "name"
+    np.testing.assert_allclose(again.directions, np.array(dirs), atol=1e-5)
+    r = subprocess.run([sys.executable, "-m", "matcap", "capture", str(photos), "--out", str(tmp_path / "b"),
+                        "--lights", str(tmp_path / "a" / "lights.json")] + quick, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    got_b = np.array([e["direction"] for e in json.loads((tmp_path / "b" / "lights.json").read_text())["images"]])
+    np.testing.assert_allclose(got_b, got, atol=1e-5)
