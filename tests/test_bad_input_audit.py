@@ -321,7 +321,7 @@ def test_weights_import_names_the_mistake(tmp_path, capsys):
         assert len(err) == 1 and needle in err[0], err
 
 
-# ---- issue 17: a new user's environment variables
+# ---- a new user's environment variables
 
 
 def test_unknown_forced_mitsuba_variant_is_one_line(tmp_path, sphere_maps):
