@@ -1,4 +1,4 @@
-"""Diagnostics behind the statements in docs/training.md and the README's BRDF table.
+"""Diagnostics behind the statements in docs/training.md and the bundled BRDF model's card.
 
   python benchmarks/diagnose_training.py overfit --data DATA [--init W] [--steps 60] [--target normal|brdf]
       Fit ONE fixed batch (B=2, K=4, 128^2, 768 pixels, the small recipe, bf16) and print its loss and mean angular

@@ -1,6 +1,6 @@
 """Bad-input audit: every case here once ended in a traceback, a silent success, a misleading message or lost data.
 
-The contract (README, "Bad input"): one line on stderr, exit code 2, nothing overwritten or lost. The commands run
+The contract (README, "Commands"; docs/ci.md): one line on stderr, exit code 2, nothing overwritten or lost. The commands run
 in-process (``matcap.cli.main``) and fail before any network or renderer runs, so the file is fast.
 """
 from __future__ import annotations
