@@ -31,7 +31,7 @@ HISTORY = re.compile(
 
 def _tracked_text_files() -> list[Path]:
     try:
-        out = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO,
+        out = subprocess.run(["git", "ls-files", "-z"], cwd=REPO,
                              capture_output=True, check=True, timeout=60).stdout
     except (OSError, subprocess.SubprocessError):
         pytest.skip("not a git checkout (or git missing): nothing to list")
