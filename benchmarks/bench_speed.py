@@ -1,7 +1,7 @@
-"""Inference speed, old code vs new code side by side (issue #18): per-stage profile, totals, bf16, capture.
+"""Inference speed, old code vs new code side by side: per-stage profile, totals, bf16, capture.
 
-Each measurement runs in its own subprocess; the "old" code is ``git archive REV`` (default f87ac8c, the commit
-before the speed work) unpacked into a temporary folder and put first on PYTHONPATH, the "new" code is this
+Each measurement runs in its own subprocess; the "old" code is ``git archive REV`` (default f87ac8c, the
+straightforward implementation) unpacked into a temporary folder and put first on PYTHONPATH, the "new" code is this
 working tree. Old and new runs alternate, so both see the same machine load; ratios are old / new.
 
 Times are wall seconds and process CPU seconds (all threads; less sensitive than wall time to other work on a

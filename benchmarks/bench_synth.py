@@ -8,13 +8,13 @@ figure to trust when other jobs share the machine. The first scene (kernel compi
 timed separately. Nothing is kept: the dataset goes to a temporary folder.
 
 ``--compare N`` renders and writes N train-split scenes both ways, interleaved scene by scene so that a shared
-machine's load hits both alike: fresh Mitsuba scenes per scene and per kind of light (before session 8) against
-one set of persistent Mitsuba scenes whose buffers are overwritten (`matcap synth` now). It prints CPU and wall
-seconds per scene and their ratio, and checks that both ways give the same images.
+machine's load hits both alike: fresh Mitsuba scenes per scene and per kind of light (``persistent=False``)
+against one set of persistent Mitsuba scenes whose buffers are overwritten (what `matcap synth` does). It prints
+CPU and wall seconds per scene and their ratio, and checks that both ways give the same images.
 
 ``--basis-ab N`` times only the basis renders of N train-split scenes, three rounds each way: one loaded Mitsuba
 scene per kind of light whose emitter is updated between lights (what `matcap synth` does) against a freshly
-loaded scene per light (what it did before session 4).
+loaded scene per light (``reuse=False``).
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Diagnostics behind the statements in docs/training.md and the README's BRDF table.
+"""Diagnostics behind the statements in docs/training.md and the bundled BRDF model's card.
 
   python benchmarks/diagnose_training.py overfit --data DATA [--init W] [--steps 60] [--target normal|brdf]
       Fit ONE fixed batch (B=2, K=4, 128^2, 768 pixels, the small recipe, bf16) and print its loss and mean angular
@@ -14,7 +14,7 @@
   python benchmarks/diagnose_training.py self-calibrated --data DATA_TEST [--init W]
       A rejected refinement: lights estimated from the network's normals, normals re-solved by robust least squares
       with them and averaged with the network's. Prints the mean angular error per lighting group of the network
-      alone, the re-solved normals and the average (docs/training.md, session 4).
+      alone, the re-solved normals and the average (docs/training.md).
   python benchmarks/diagnose_training.py brdf-outputs --data DATA [--init W] [--scenes 12]
       What the BRDF network's roughness and metallic heads do on every mask pixel of the first scenes: the share of
       outputs below zero before the ReLU (no gradient there when the loss is on the ReLU), the mean of prediction
@@ -31,7 +31,7 @@
       regressor's features of random training scenes, and compare its validation RMSE with the trained head's.
   python benchmarks/diagnose_training.py average --out AVG.safetensors W1 W2 [...]
       The element-wise mean of weights of one network (config and card of W1), to score with networks.validate
-      (docs/training.md, session 5: averaging checkpoints did not help).
+      (docs/training.md: averaging checkpoints does not help).
 """
 from __future__ import annotations
 

@@ -1,7 +1,8 @@
 """A one-row figure of a capture: four of the input photos, the recovered normal map, the base color, roughness
 and metallic maps (when the capture has them) and a relit render.
 
-    matcap capture examples/bunny --linear --out bunny-maps --relight matcap/data/envmaps/studio_small_03.exr
+    matcap capture examples/bunny --linear --out bunny-maps
+    matcap relight bunny-maps                             # the render under the default studio map
     python examples/readme_figure.py                      # reads bunny-maps/, writes ./bunny_capture.png
 
 It never replaces an existing file unless told to; the README's figure was made with

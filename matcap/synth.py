@@ -184,7 +184,7 @@ def _mitsuba_variant() -> str:
 
 def render_spec(spec: SceneSpec, cache: AssetCache, spp: int, persistent: bool = True) -> SceneResult:
     """Render one scene. ``persistent``: through the cache's :class:`renderers.synth.BasisRenderer`, whose Mitsuba
-    scenes are reused for every scene of the process (``False``: fresh Mitsuba scenes, as before session 8)."""
+    scenes are reused for every scene of the process (``False``: fresh Mitsuba scenes for every scene)."""
     from renderers.synth import BasisRenderer, render_scene
     from scenes.synth_build import auto_exposure, build_render_objects, check_scene
 

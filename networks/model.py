@@ -34,7 +34,7 @@ _REFERENCE = False
 
 @contextlib.contextmanager
 def reference_ops():
-    """Run the straightforward implementation (as before the speed work of issue #18) inside this block: explicit
+    """Run the straightforward implementation (docs/speed.md) inside this block: explicit
     attention with separate K/V projections, the PMA's K/V projected per image, the 2-D convolution Gaussian
     smoothing and the UPerNet head in contiguous (NCHW) memory. Same function, other rounding; the equality tests
     compare the two (``tests/test_networks_speed_equality.py``). Not thread-safe (a module-level switch)."""

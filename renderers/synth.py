@@ -254,7 +254,7 @@ class SceneRenderer:
         A single light reuses the loaded scene of the previous light of its kind (same env map for environment
         lights) and only updates the emitter's parameters: the shapes' acceleration structure is built once per
         kind instead of once per basis light. The image is the same as from a freshly loaded scene
-        (``reuse=False`` loads one, as before session 4).
+        (``reuse=False`` loads one).
         """
         mi = self.mi
         weights = weights or [1.0] * len(lights)
@@ -332,7 +332,7 @@ def render_scene(objects: list[RenderObject], basis: list[Light], envmaps: dict[
 
     ``persistent`` (default; JIT variants only): through a :class:`BasisRenderer` (``renderer``, or a new one)
     whose Mitsuba scenes outlive the scene: pass the same ``renderer`` for every scene of a dataset and nothing is
-    loaded or compiled again. ``persistent=False`` loads fresh Mitsuba scenes (:class:`SceneRenderer`, the way before session 8);
+    loaded or compiled again. ``persistent=False`` loads fresh Mitsuba scenes (:class:`SceneRenderer`);
     both give the same images up to Monte Carlo noise.
     """
     delta_spp = max(1, round(spp * DELTA_SPP_FACTOR))

@@ -1,6 +1,6 @@
 """Bad-input audit: every case here once ended in a traceback, a silent success, a misleading message or lost data.
 
-The contract (README, "Bad input"): one line on stderr, exit code 2, nothing overwritten or lost. The commands run
+The contract (README, "Commands"; docs/ci.md): one line on stderr, exit code 2, nothing overwritten or lost. The commands run
 in-process (``matcap.cli.main``) and fail before any network or renderer runs, so the file is fast.
 """
 from __future__ import annotations
@@ -321,7 +321,7 @@ def test_weights_import_names_the_mistake(tmp_path, capsys):
         assert len(err) == 1 and needle in err[0], err
 
 
-# ---- issue 17: a new user's environment variables
+# ---- a new user's environment variables
 
 
 def test_unknown_forced_mitsuba_variant_is_one_line(tmp_path, sphere_maps):

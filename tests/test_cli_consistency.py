@@ -1,4 +1,4 @@
-"""The command-line interface as a new user meets it (issue 17): one name per option across commands, defaults
+"""The command-line interface as a new user meets it: one name per option across commands, defaults
 and choices shown by --help, a default --out outside the data folder."""
 from __future__ import annotations
 

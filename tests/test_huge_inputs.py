@@ -1,4 +1,4 @@
-"""Huge inputs (issue 17): sizes come from the image headers, so a capture too large for the memory is refused in
+"""Huge inputs: sizes come from the image headers, so a capture too large for the memory is refused in
 one line before anything is decoded, and --max-side / --max-images keep a large capture within bounded memory.
 Everything here uses small fakes: PNGs whose header claims 12,000 x 9,000 pixels, and a memory limit set through
 MATCAP_MEMORY_GB."""

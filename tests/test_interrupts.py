@@ -1,4 +1,4 @@
-"""Interrupted work loses nothing and resumes (issue 17). Each case runs a real `matcap` command in a child process
+"""Interrupted work loses nothing and resumes. Each case runs a real `matcap` command in a child process
 that stops at a chosen point (a function patched to announce itself and wait), sends it a signal (SIGINT, SIGTERM
 or SIGKILL), then checks what is left on disk and that the same command run again succeeds and leaves no strays.
 

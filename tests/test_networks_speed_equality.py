@@ -1,4 +1,4 @@
-"""fp32 equality of the fast inference path (issue #18) with the implementation it replaced.
+"""fp32 equality of the fast inference path with the implementation it replaced.
 
 Two kinds of checks, no timings:
 - ``tests/data/speed_reference.npz``: outputs of :func:`networks.inference.predict` written by the code of commit

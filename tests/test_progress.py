@@ -1,4 +1,4 @@
-"""Progress output: a bar on a terminal, one line per stage (with its time) in logs (issue 17)."""
+"""Progress output: a bar on a terminal, one line per stage (with its time) in logs."""
 from __future__ import annotations
 
 import io

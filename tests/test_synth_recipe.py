@@ -78,5 +78,5 @@ def test_gpu_recipe_dry_run(pool, tmp_path):
     runs_out = (tmp_path / "runs" / "run_b.out").read_text()
     assert "Traceback" not in runs_out
     cfg = json.loads((tmp_path / "runs" / "run_b" / "log.jsonl").read_text().splitlines()[0]).get("train_config", {})
-    if cfg:  # the BRDF run trains with the session-5 loss
+    if cfg:  # the BRDF run trains with the weighted loss
         assert cfg.get("brdf_loss_before_relu") is True

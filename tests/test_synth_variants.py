@@ -1,5 +1,5 @@
 """`matcap synth` and renderers.synth in both Mitsuba variants: ``llvm_ad_rgb`` and the ``scalar_rgb`` fallback a
-fresh install without libLLVM >= 17 gets (issue 17: ``mi.Float(ndarray)`` is a Python float in scalar variants)."""
+fresh install without libLLVM >= 17 gets (``mi.Float(ndarray)`` is a Python float in scalar variants)."""
 from __future__ import annotations
 
 import json
@@ -76,7 +76,7 @@ def test_render_scene_in_variant(mitsuba_variant, variant):
 
 
 def test_synth_cli_in_scalar_variant(mitsuba_variant, tmp_path):
-    """The command of issue 17, at a smaller size, in the scalar fallback."""
+    """`matcap synth` as a new user runs it, at a smaller size, in the scalar fallback."""
     from matcap.synth import run_synth
 
     mitsuba_variant("scalar_rgb")

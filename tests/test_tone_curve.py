@@ -51,7 +51,7 @@ def test_reading_with_a_tone_curve_undoes_it_before_srgb(tmp_path):
 
 def test_the_fit_keeps_linear_photos_linear(tmp_path):
     """The decision between linear and sRGB (no tone curve is decided: the quick fit's re-render error, measured
-    in stored units, favours steeper curves wherever the fit is imperfect; docs/refine.md, session 18)."""
+    in stored units, favours steeper curves wherever the fit is imperfect; docs/refine.md)."""
     folder = _sphere(tmp_path / "p", lambda v: v)
     linear, record, cap, maps = decide_colour(folder, None, None, None, {"seed": 0})
     assert linear and record["chosen"] == "linear" and maps is None and len(cap.images) == 8

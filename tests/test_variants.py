@@ -1,5 +1,5 @@
 """Every command that renders works in both Mitsuba variants: ``llvm_ad_rgb`` and the ``scalar_rgb`` fallback
-a new machine gets without libLLVM >= 17 (issue 17). Each test runs once per variant (``mitsuba_variant``)."""
+a new machine gets without libLLVM >= 17. Each test runs once per variant (``mitsuba_variant``)."""
 from __future__ import annotations
 
 import json

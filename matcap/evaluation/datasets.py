@@ -37,7 +37,7 @@ Three layouts are recognised (:func:`discover` decides from the files present):
     course data were made for Lambertian photometric stereo with linear images and decoding sRGB makes the
     least-squares fit worse. Networks are given the sRGB-decoded images (``PSObject.srgb_8bit`` is True), as
     ``matcap capture`` would do with 8-bit photos, unless ``matcap eval --linear`` (the same values as the
-    baselines; 2.1 degrees closer to least squares for the bundled model, README).
+    baselines; closer to least squares for the bundled model: docs/eval.md).
 
 ``synthetic``  -- our rendered split: ``DATA/manifest.json`` and ``DATA/scene_XXXXXX/`` with ``000.png`` ...
     (linear 16-bit RGB), ``mask.png`` (0/255), ``normal.exr`` (float32, our convention, zeros outside the mask),
