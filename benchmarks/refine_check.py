@@ -197,6 +197,8 @@ def synthetic(args) -> None:
     truths = []
     for sc in scenes:
         obj = load_synthetic_scene(sc)
+        if args.given_only and obj.light_dirs is None:
+            continue
         gt = read_result(sc)
         maps = estimate(obj.images, obj.mask, models=models, seed=0)
         known = None
@@ -486,6 +488,8 @@ def main(argv=None) -> int:
     ap.add_argument("--data", help="synthetic split (synthetic): a folder written by `matcap synth`")
     ap.add_argument("--given-lights", action="store_true",
                     help="synthetic: give the fit each directional scene's true lights (the known-lights fit)")
+    ap.add_argument("--given-only", action="store_true",
+                    help="synthetic, with --given-lights: only the scenes whose lights are given")
     ap.add_argument("--lights", metavar="txt|FILE",
                     help="uw: give the fit known lights: 'txt' each capture's lights.txt, or a light file (e.g. "
                          "the rig.json of `matcap calibrate uw_chrome`)")

@@ -621,6 +621,7 @@ def capture(
     refine: bool = False,
     refine_settings=None,
     lights: str | os.PathLike | None = None,
+    ball: str | os.PathLike | None = None,
     **estimate_kwargs,
 ) -> tuple[MaterialMaps, Path]:
     """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`); then, optionally,
@@ -634,7 +635,9 @@ def capture(
     contrast (:func:`matcap.imageio.tone_curve`; not with ``linear=True``; nothing is decided then).
     ``refine`` fits lights and maps to the photos after the networks (:mod:`matcap.refine`; ``refine_settings``
     a :class:`matcap.refine.RefineSettings`) and adds lights.json, fit.json, residual.png, light_variation.png;
-    ``lights``: a light file (:mod:`matcap.lightfiles`) whose lights the fit holds instead of estimating them.
+    ``lights``: a light file (:mod:`matcap.lightfiles`) whose lights the fit holds instead of estimating them;
+    ``ball``: "auto" or a mask file of a mirror ball inside the photos: the lights come from its highlights
+    (:mod:`matcap.calibrate`), the ball is kept out of the object's mask and ``calibration.png`` is written.
     ``relight``: an environment map path, or a dict of :func:`matcap.relight.relight` settings (``env``,
     ``point``, ``spp``, ``size`` ...), or a list of them; each renders ``relight_<name>.exr/.png`` into the result
     folder. ``export``: a folder, or a dict of :func:`matcap.export.export` settings with ``out`` (``preset``,
@@ -656,11 +659,18 @@ def capture(
         linear = False
     if max_side is not None:
         check_max_side(max_side)  # fail before the expensive part
+    max_images = estimate_kwargs.pop("max_images", None)
+    seed = estimate_kwargs.get("seed", 0)
     known = None
-    if lights is not None:
+    if lights is not None or ball is not None:
         if not refine:
-            raise MatcapError("--lights gives the fit its lights; it has no use with --no-refine")
-        known = read_lights_for(lights, folder)  # every photo of the folder; --max-images picks below
+            raise MatcapError(f"{'--lights' if lights is not None else '--ball'} gives the fit its lights; it has no "
+                              f"use with --no-refine")
+        if lights is not None and ball is not None:
+            raise MatcapError("--lights and --ball both give the lights; choose one")
+    picked = pick_images(len(photo_names(folder)), max_images, seed)  # as load_capture picks them
+    if lights is not None:
+        known = read_lights_for(lights, folder, picked)
     check_output_dir(out, overwrite)  # fail before the expensive part
     check_not_replacing_inputs(out, folder, mask)  # --overwrite replaces the out folder: never the photos in it
     plans = [relighting.plan(**request) for request in _relight_requests(relight)]
@@ -671,19 +681,21 @@ def capture(
     if export_request is not None:
         check_options(**export_request)
     # --max-side and --max-images act while reading: photos are shrunk one by one and unused ones never decoded
-    max_images = estimate_kwargs.pop("max_images", None)
-    seed = estimate_kwargs.get("seed", 0)
+    calibration = ball_region = None
+    if ball is not None:
+        known, calibration, ball_region = ball_lights(folder, ball, linear, contrast, max_side, max_images, seed)
     colour_decision, cap, maps = None, None, None
     if refine and linear is None:  # neither --linear nor --srgb: let the fit decide for 8-bit photos
         t0 = time.perf_counter()
         linear, colour_decision, cap, maps = decide_colour(folder, mask, max_side, refine_settings,
-                                                           dict(estimate_kwargs, max_images=max_images), known)
+                                                           dict(estimate_kwargs, max_images=max_images), known,
+                                                           exclude=ball_region)
         if colour_decision is not None:
             colour_decision["seconds"] = round(time.perf_counter() - t0, 3)
     linear = bool(linear)  # None without the fit: sRGB, the default
     if cap is None:
-        cap = load_capture(folder, mask=mask, linear=linear, max_side=max_side, max_images=max_images,
-                           seed=seed, contrast=contrast)
+        cap = without_region(load_capture(folder, mask=mask, linear=linear, max_side=max_side,
+                                           max_images=max_images, seed=seed, contrast=contrast), ball_region)
     original_wh = list(cap.photo_size_wh)
     if maps is None:
         maps = estimate(cap.images, cap.mask, **estimate_kwargs)
@@ -693,7 +705,7 @@ def capture(
     used = [cap.files[i] for i in maps.meta["images_used"]]
     refine_writer = None
     if refine:
-        used_lights = None if known is None else known.subset(cap.picked).subset(maps.meta["images_used"])
+        used_lights = None if known is None else known.subset(maps.meta["images_used"])
         maps, refine_writer = refine_maps(maps, [cap.images[i] for i in maps.meta["images_used"]], used,
                                           cap.colour, refine_settings, constants,
                                           progress=bool(estimate_kwargs.get("progress")), seed=seed,
@@ -713,6 +725,7 @@ def capture(
             **({"colour_decision": colour_decision} if colour_decision else {}),
             "image_size_wh": [cap.images[0].shape[1], cap.images[0].shape[0]],
             "photo_size_wh": original_wh,  # image_size_wh differs from it after --max-side
+            **({"ball": calibration.document_fields()["ball"]} if calibration is not None else {}),
         }
     )
 
@@ -721,6 +734,11 @@ def capture(
         of the atomic result, and the export is done (itself atomically) before the result appears, so a run
         killed at any point leaves either nothing or everything."""
         written = list(refine_writer(folder)) if refine_writer is not None else []
+        if calibration is not None:
+            from matcap.calibrate import DIAGNOSTIC, diagnostic_image
+
+            imageio.write_png(folder / DIAGNOSTIC, diagnostic_image(calibration, cap.images), bits=8)
+            written.append(DIAGNOSTIC)
         for p in plans:
             relighting.render_plan(maps, p, out=folder, overwrite=True)
         if export_request is not None:
@@ -729,6 +747,44 @@ def capture(
 
     write_result(maps, out, overwrite=overwrite, extra_files=finish)
     return maps, Path(out)
+
+
+def without_region(cap: Capture, region: np.ndarray | None) -> Capture:
+    """``cap`` with the pixels ``region`` (H, W) bool kept out of its mask (a mirror ball in the frame)."""
+    if region is None:
+        return cap
+    if region.shape != cap.images[0].shape[:2]:
+        raise MatcapError(f"the ball's region is {region.shape[1]}x{region.shape[0]} but the photos are "
+                          f"{cap.images[0].shape[1]}x{cap.images[0].shape[0]}")
+    base = cap.mask if cap.mask is not None else np.ones(region.shape, bool)
+    mask = base & ~region
+    if not mask.any():
+        raise MatcapError("the mask holds nothing but the mirror ball")
+    return dataclasses.replace(cap, mask=mask)
+
+
+def ball_lights(folder, ball: str | os.PathLike, linear: bool | None, contrast: float, max_side: int | None,
+                max_images: int | None, seed: int):
+    """(KnownLights of the photos read, :class:`matcap.calibrate.Calibration`, the ball's region (H, W) bool) from
+    a mirror ball inside the capture's own photos (``ball``: "auto", or a mask file of the ball). The highlights
+    are found on the photos as decoded (8-bit as linear unless --srgb: the decoding moves no highlight); the
+    relative intensities are kept only where the photos are linear."""
+    from matcap.calibrate import calibrate, read_ball_mask
+    from matcap.lightfiles import KnownLights
+
+    cap = load_capture(folder, linear=linear is not False, max_side=max_side, max_images=max_images, seed=seed,
+                       contrast=contrast)
+    ball_mask = None
+    if str(ball) != "auto":
+        full = cap.photo_size_wh[::-1]
+        ball_mask = read_ball_mask(ball, full)
+        if tuple(full) != cap.images[0].shape[:2]:
+            ball_mask = _shrink(ball_mask.astype(np.float32), cap.images[0].shape[1::-1]) > 0.5
+    cal = calibrate(cap.images, ball_mask=ball_mask, names=cap.files)
+    linear_photos = "8-bit sRGB" not in cap.colour
+    known = KnownLights(cal.directions, cal.intensities if linear_photos else None, "ball",
+                        f"mirror ball in {Path(folder).name}", "order")
+    return known, cal, cal.ball_mask()
 
 
 def decoding_record(cap: Capture, linear: bool | None, chosen_by: str, contrast: float = 1.0) -> dict[str, Any]:
@@ -740,19 +796,21 @@ def decoding_record(cap: Capture, linear: bool | None, chosen_by: str, contrast:
             "tone_curve_contrast": contrast if eight else 1.0, "chosen_by": chosen_by if eight else "flag"}
 
 
-def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None, pixels: int = 6000):
+def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None, pixels: int = 6000,
+                  exclude: np.ndarray | None = None):
     """(linear?, record, capture, maps) for 8-bit photos given neither --linear nor --srgb: run the networks on the
     sRGB-decoded photos, fit both decodings (a quick fit on ``pixels`` random object pixels) and keep the one whose
     re-render is closer to the photos *as stored* (RMS in 8-bit units / 255). ``capture`` is the photos read the
     chosen way; ``maps`` the networks' maps when they were made from those photos (sRGB chosen), else None, so the
     caller reads and predicts nothing twice. 16-bit and float photos: (False, None, capture, None). ``known``:
-    the :class:`matcap.lightfiles.KnownLights` of every photo of the folder, held by both quick fits."""
+    the :class:`matcap.lightfiles.KnownLights` of the photos read, held by both quick fits; ``exclude``: (H, W)
+    pixels kept out of the mask (a mirror ball)."""
     from matcap.refine import RefineSettings, refine
 
     kwargs = dict(estimate_kwargs, progress=False)
     max_images = kwargs.pop("max_images", None)
-    caps = {lin: load_capture(folder, mask=mask, linear=lin, max_side=max_side, max_images=max_images,
-                              seed=kwargs.get("seed", 0)) for lin in (False, True)}
+    caps = {lin: without_region(load_capture(folder, mask=mask, linear=lin, max_side=max_side, max_images=max_images,
+                                             seed=kwargs.get("seed", 0)), exclude) for lin in (False, True)}
     if "8-bit" not in caps[False].colour:
         return False, None, caps[False], None
     maps = estimate(caps[False].images, caps[False].mask, **kwargs)
@@ -768,7 +826,7 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
     rmse = {}
     for lin, cap in caps.items():
         images = [cap.images[i] for i in maps.meta["images_used"]]
-        held = None if known is None else known.subset(cap.picked).subset(maps.meta["images_used"])
+        held = None if known is None else known.subset(maps.meta["images_used"])
         res = refine(images, maps_sub, quick, lights=held)
         pred = np.clip(res.prediction[:, sub], 0.0, 1.0)
         photo = np.stack([im[sub] for im in images])
