@@ -391,8 +391,10 @@ def build_glb(maps: MaterialMaps, src: dict[str, np.ndarray], missing: list[str]
     h, w = maps.shape
     hx, hy = 0.5 * repeats, 0.5 * repeats * h / w
     vertices = np.array([[-hx, hy, 0], [hx, hy, 0], [-hx, -hy, 0], [hx, -hy, 0]], np.float64)  # TL TR BL BR
-    # trimesh UVs: v up (glTF flips on export)
-    uv = np.array([[0, 1], [1, 1], [0, 0], [1, 0]], np.float64) * repeats
+    # trimesh UVs: v up (glTF stores 1 - v): 0 .. repeats in the file, image top = glTF V 0 as for one tile
+    uv = np.array([[0, 1], [1, 1], [0, 0], [1, 0]], np.float64)
+    uv[:, 0] *= repeats
+    uv[:, 1] = 1.0 - repeats * (1.0 - uv[:, 1])
     faces = np.array([[0, 2, 3], [0, 3, 1]])
     kwargs: dict[str, Any] = {"name": name, "doubleSided": False}
     table = formats.LAYOUTS["glb"]
