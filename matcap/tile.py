@@ -150,6 +150,49 @@ def _stack(maps: MaterialMaps) -> tuple[np.ndarray, dict[str, slice]]:
     return np.concatenate(planes, axis=2), groups
 
 
+def border_offsets(square: MaterialMaps, n: int, p: int, band: int = 4, tolerance: float = 0.08
+                   ) -> tuple[tuple[int, int], dict[str, Any]]:
+    """Where to take the n x n crop inside ``square`` (side > n): (row, col) offsets, and why.
+
+    The tile's border joins source columns (and rows) ``offset + P - 1`` and ``offset + P``: a real pair of
+    neighbours, so no seam, but it should also be an *ordinary* pair, not one of the lines where the source files
+    carry more gradient energy than their neighbours (the 8 x 8 block edges of a JPEG, an atlas island's edge).
+    Per axis, the offset nearest the centre whose border line's gradient energy is, in every map, within
+    ``tolerance`` (in log) of the mean of the ``band`` lines on each side; failing that, the offset whose worst map
+    is the most ordinary."""
+    side = square.shape[0]
+    planes = [np.asarray(v, np.float64) for v in map_planes(square).values()]
+    planes = [v[..., None] if v.ndim == 2 else v for v in planes]
+    cand = np.arange(side - n + 1)
+    line = cand + p - 1  # the source pair (line, line + 1) becomes the border
+    centre = np.abs(cand - (side - n) / 2)
+
+    def choose(axis: int, other: int) -> tuple[int, float]:
+        """The offset along ``axis`` with the crop at ``other`` on the other axis."""
+        badness = np.zeros(len(cand))
+        for v in planes:
+            v = v[other:other + n] if axis == 1 else v[:, other:other + n]
+            energy = (np.diff(v, axis=axis) ** 2).sum(axis=2).mean(axis=1 - axis)
+            if not energy.any():
+                continue
+            near = np.stack([energy[np.clip(line + j, 0, side - 2)] for j in range(-band, band + 1) if j]).mean(0)
+            bad = np.abs(np.log(np.maximum(energy[line], 1e-30) / np.maximum(near, 1e-30)))
+            badness = np.maximum(badness, bad)
+        ok = badness <= tolerance
+        best = int(cand[ok][np.argmin(centre[ok])]) if ok.any() else int(cand[np.argmin(badness)])
+        return best, float(badness[best])
+
+    mid = (side - n) // 2
+    col, _ = choose(1, mid)  # columns with the rows centred, then rows with those columns, then columns again
+    row, row_bad = choose(0, col)
+    col, col_bad = choose(1, row)
+    offsets = [row, col]
+    why = {"row": {"offset": row, "worst_map_border_line_log_ratio": round(row_bad, 4)},
+           "col": {"offset": col, "worst_map_border_line_log_ratio": round(col_bad, 4)}}
+    return (offsets[0], offsets[1]), {"rule": "the border on an ordinary line of the source, nearest the centre",
+                                      **why}
+
+
 # ------------------------------------------------------------------------------------------------ step 2: the cut
 def joint_error(a: np.ndarray, b: np.ndarray, groups: dict[str, slice], scale: dict[str, float]) -> np.ndarray:
     """(H, W) error between two stacks: per map the mean squared channel difference over the map's variance,
@@ -355,8 +398,14 @@ def tile_maps(maps: MaterialMaps, size: int | None = None) -> tuple[MaterialMaps
     k = overlap(p)
     # at native resolution when the square holds the tile and its overlap; else the square resampled to fit
     n = min(side, p + k)
+    placed = {"rule": "centred (the square holds no more than the tile and its overlap)"}
     if side > n:
-        row, col = row + (side - n) // 2, col + (side - n) // 2
+        square_maps = MaterialMaps(
+            normal=maps.normal[row:row + side, col:col + side], mask=np.ones((side, side), bool),
+            **{name: None if getattr(maps, name) is None else getattr(maps, name)[row:row + side, col:col + side]
+               for name in ("base_color", "roughness", "metallic")})
+        (dr, dc), placed = border_offsets(square_maps, n, p)
+        row, col = row + dr, col + dc
     crop = (slice(row, row + n), slice(col, col + n))
 
     def square(x):
@@ -374,7 +423,7 @@ def tile_maps(maps: MaterialMaps, size: int | None = None) -> tuple[MaterialMaps
     for name, sl in groups.items():
         v = out[..., sl]
         values[name] = _unit(v) if name == "normal" else np.clip(v if v.shape[2] > 1 else v[..., 0], 0.0, 1.0)
-    normal = values.pop("normal")
+    normal, tilt = level(values.pop("normal"))
     height = integrate_normals(normal, None, "periodic")
     tiled = MaterialMaps(normal=normal, mask=np.ones((p, p), bool), height=height, meta=dict(maps.meta), **values)
     shifts = np.stack([src_r - np.arange(p)[:, None], src_c - np.arange(p)[None, :]], axis=-1)
@@ -385,17 +434,31 @@ def tile_maps(maps: MaterialMaps, size: int | None = None) -> tuple[MaterialMaps
                   "on the joint error), Poisson blend on the torus, height by periodic Fourier integration",
         "source_size": {"width": int(maps.shape[1]), "height": int(maps.shape[0])},
         "crop": {"row": row, "col": col, "side": n, "largest_square": side, "resampled_to": p + k,
-                 "scale": (p + k) / n},
+                 "scale": (p + k) / n, "placement": placed},
         "size": p,
         "maps": list(groups) + ["height"],
-        "cut": {**cut, "texels_per_shift": {f"{int(s[0])},{int(s[1])}": int(n) for s, n in zip(*region)}},
+        "cut": {**cut, "texels_per_shift": {f"{int(s[0])},{int(s[1])}": int(c) for s, c in zip(*region)}},
         "height": "periodic Fourier integration of the tiled normals (pixel units, zero mean)",
+        "mean_tilt_removed_deg": round(tilt, 4),
         "seam_energy": {name: {k: round(v, 8) for k, v in e.items()} for name, e in seam_report(tiled).items()},
         "cut_energy": {name: {k: round(v, 8) for k, v in cut_energy(x, shift_id).items()}
                        for name, x in map_planes(tiled).items()},
     }
     tiled.meta = {**{k: v for k, v in maps.meta.items() if k != "tiling"}, "tiling": info}
     return tiled, info
+
+
+def level(normal: np.ndarray) -> tuple[np.ndarray, float]:
+    """The normals turned so that their mean is +z (a periodic height has no mean slope: without this a tilted
+    sample's normals and its tiled height would disagree by the tilt everywhere), and the tilt removed in degrees.
+    The turn is ``matcap export --fit-frame``'s tangent frame (N = the mean normal, T = image x projected onto the
+    plane)."""
+    from matcap.formats import camera_to_tangent, tangent_frame
+
+    mask = np.ones(normal.shape[:2], bool)
+    frame = tangent_frame(normal, mask, "fit")
+    tilt = float(np.degrees(np.arccos(np.clip(frame[2, 2], -1.0, 1.0))))  # rows T, B, N in camera space
+    return camera_to_tangent(normal, mask, frame), tilt
 
 
 def _unit(n: np.ndarray) -> np.ndarray:
