@@ -6,16 +6,18 @@
 Steps (:func:`tile_maps` does 1-5 on :class:`MaterialMaps`, :func:`tile` adds the files):
 
 1. **Square.** The largest axis-aligned square inside the mask (exact: a binary search on the side with an
-   integral image; among the squares of that side, the one nearest the mask's centre). The square is area-resampled
-   to a power-of-two side ``P``: the given ``size`` (at most the square's side: nothing is upsampled), else the
-   largest power of two that fits (at most :data:`DEFAULT_MAX_SIZE`).
-2. **One cut for all maps.** The classic offset trick: the tile shifted by half its size has no seam at its borders.
-   Column by column, the output takes the tile (``A``) in a band around the centre and the half-shifted tile
-   elsewhere; the boundary between the two is the minimum-error vertical path (dynamic programming, 8-connected,
-   as in image quilting) through the joint error of *all* maps (normal, base colour, roughness, metallic, each
-   divided by its variance so that each map counts the same). Then the same across rows on the result, with a
-   horizontal path that closes around the tile (its two ends meet, so the output stays periodic in x). Every
-   output texel is thus one texel of the square, moved by one of four shifts: the same for every map.
+   integral image; among the squares of that side, the one nearest the mask's centre). The tile side ``P`` is the
+   given ``size`` (a power of two, at most the square's side), for which the whole square is resampled (Lanczos)
+   to ``P + K`` (``K`` = :func:`overlap`, the material the cut may use); else the largest power of two that fits
+   with its overlap at the maps' own resolution (at most :data:`DEFAULT_MAX_SIZE`), cropped from the square with
+   the border on an ordinary line (:func:`border_offsets`).
+2. **One cut for all maps.** The ``K`` columns beyond the tile continue its last column; placed over its first
+   ``K`` columns they make it wrap. The boundary between them and the tile's own columns is the minimum-error
+   vertical path (dynamic programming, 8-connected, as in image quilting) through the joint error of *all* maps
+   (normal, base colour, roughness, metallic, each divided by its variance so that each map counts the same). Then
+   the same across rows on the result, with a horizontal path that closes around the tile (its two ends meet, so
+   the output stays periodic in x). Every output texel is thus one texel of the source, moved by one of four
+   shifts (0 or P per axis): the same for every map.
 3. **Gradient-domain blend.** A hard cut still shows a small jump where the two sides differ. Each map is rebuilt
    from its gradients (the source's gradient inside each region; across the cut the mean of the two sources'
    gradients) by a Poisson solve on the torus (FFT), keeping its mean: no jump at the cut, no ghosting (nothing is
@@ -396,9 +398,10 @@ def tile_maps(maps: MaterialMaps, size: int | None = None) -> tuple[MaterialMaps
                           f"{side} x {side}); tiling needs a square patch of the surface")
     p = check_size(size, side) or default_size(side)
     k = overlap(p)
-    # at native resolution when the square holds the tile and its overlap; else the square resampled to fit
-    n = min(side, p + k)
-    placed = {"rule": "centred (the square holds no more than the tile and its overlap)"}
+    # no size given: the tile and its overlap at the maps' own resolution (a crop of the square, when it holds
+    # them); a size given: the whole square resampled to that size (plus the overlap)
+    n = side if size is not None else min(side, p + k)
+    placed: dict[str, Any] = {"rule": "the whole square" + (", resampled" if side != p + k else "")}
     if side > n:
         square_maps = MaterialMaps(
             normal=maps.normal[row:row + side, col:col + side], mask=np.ones((side, side), bool),
@@ -503,11 +506,13 @@ def preview(maps: MaterialMaps, *, repeats: int = 3, tile_px: int = PREVIEW_TILE
 
 # ------------------------------------------------------------------------------------------------ tile (files)
 def tile(source: MaterialMaps | str | os.PathLike, out: str | os.PathLike, *, size: int | None = None,
-         overwrite: bool = False, preview_image: bool = True, spp: int = PREVIEW_SPP) -> dict[str, Any]:
+         overwrite: bool = False, preview_image: bool = True, spp: int = PREVIEW_SPP,
+         progress: bool = False) -> dict[str, Any]:
     """Tile ``source`` (any map source :func:`matcap.formats.load_maps` reads) into the result folder ``out``:
     the maps (with ``height.exr``), ``preview_3x3.png`` (unless ``preview_image`` is off) and ``capture.json``
     with a ``tiling`` entry. Written atomically; refuses an existing non-empty ``out`` unless ``overwrite``.
-    Returns the tiling description."""
+    ``progress``: one line (or bar) per stage on stderr. Returns the tiling description."""
+    from networks.progress import progress as progress_bar
     from matcap import formats
     from matcap.relight import check_spp
     from matcap.results import check_not_replacing_inputs, check_output_dir, write_result
@@ -519,7 +524,9 @@ def tile(source: MaterialMaps | str | os.PathLike, out: str | os.PathLike, *, si
     check_output_dir(out, overwrite)
     check_not_replacing_inputs(out, source if not isinstance(source, MaterialMaps) else None)
     maps = formats.load_maps(source)
+    bar = progress_bar(total=3 if preview_image else 2, desc="tile", unit="stage", enabled=progress)
     tiled, info = tile_maps(maps, size)
+    bar.update(1)
     if not isinstance(source, MaterialMaps):
         info["source"] = str(source)
     spec = formats.LAYOUTS["result"]["preview"]
@@ -528,6 +535,7 @@ def tile(source: MaterialMaps | str | os.PathLike, out: str | os.PathLike, *, si
         picture = preview(tiled, spp=spp)
         info["preview"] = {"file": spec.file, "repeats": 3, "size": int(picture.shape[0]), "spp": spp,
                            "envmap": "studio_small_03.exr (bundled)", "tonemap": "aces"}
+        bar.update(1)
 
     def extra(folder: Path) -> list[str]:
         if picture is None:
@@ -536,4 +544,6 @@ def tile(source: MaterialMaps | str | os.PathLike, out: str | os.PathLike, *, si
         return [spec.file]
 
     write_result(replace(tiled, meta={**tiled.meta, "tiling": info}), out, overwrite=overwrite, extra_files=extra)
+    bar.update(1)
+    bar.close()
     return info

@@ -204,6 +204,15 @@ def test_bad_input_is_one_line_exit_2(tmp_path, tiled):
         tile_maps(maps, size=100)
 
 
+def test_a_given_size_keeps_the_whole_square():
+    """--size N: all of the sample, resampled to N (+ the overlap); the default crops at the maps' resolution."""
+    maps = swatch()
+    out, info = tile_maps(maps, size=32)
+    assert out.shape == (32, 32)
+    assert info["crop"]["side"] == N and info["crop"]["resampled_to"] == 40
+    assert seam_energy(out.base_color)["ratio"] < 1.6 and seam_energy(out.normal)["ratio"] < 1.6
+
+
 def test_cut_energy_sees_a_hard_cut():
     """The cut measure flags a step: two halves of different constant level give a ratio far above 1."""
     rng = np.random.default_rng(1)

@@ -15,11 +15,13 @@ def register(sub) -> None:
     p.add_argument("result", help="capture result folder (or any map source: an export, a texture set, a .glb)")
     p.add_argument("--out", required=True, help="folder for the tiled result (must not exist, or pass --overwrite)")
     p.add_argument("--size", type=int, metavar="N",
-                   help="side of the tile in pixels, a power of two no larger than the largest square of surface "
-                        "(default: the largest power of two that fits, at most 4096)")
+                   help="side of the tile in pixels, a power of two no larger than the largest square of surface: "
+                        "all of the square, resampled (default: the largest power of two that fits with its "
+                        "overlap of N/8 at the maps' own resolution, cropped; at most 4096)")
     p.add_argument("--spp", type=int, default=16, help="samples per pixel of the preview render (default 16)")
     p.add_argument("--no-preview", action="store_true", help="do not render preview_3x3.png")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=run)
 
 
@@ -33,7 +35,7 @@ def run(args) -> int:
         raise MatcapError(f"{args.result}: no such result folder")
     check_size(args.size)
     info = tile(args.result, args.out, size=args.size, overwrite=args.overwrite,
-                preview_image=not args.no_preview, spp=args.spp)
+                preview_image=not args.no_preview, spp=args.spp, progress=not args.quiet)
     crop = info["crop"]
     print(f"tiled {info['size']} x {info['size']} from the {crop['side']} x {crop['side']} square at row "
           f"{crop['row']}, column {crop['col']} -> {args.out}")
