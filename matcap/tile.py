@@ -144,12 +144,12 @@ def _stack(maps: MaterialMaps) -> tuple[np.ndarray, dict[str, slice]]:
         value = getattr(maps, name)
         if value is None:
             continue
-        value = np.asarray(value, np.float64)
+        value = np.asarray(value, np.float32)
         value = value[..., None] if value.ndim == 2 else value
         planes.append(value)
         groups[name] = slice(k, k + value.shape[2])
         k += value.shape[2]
-    return np.concatenate(planes, axis=2), groups
+    return np.concatenate(planes, axis=2).astype(np.float32), groups
 
 
 def border_offsets(square: MaterialMaps, n: int, p: int, band: int = 4, tolerance: float = 0.08
@@ -303,17 +303,22 @@ def _torus_poisson(gx: np.ndarray, gy: np.ndarray, mean: np.ndarray) -> np.ndarr
 def blend(stack: np.ndarray, src_r: np.ndarray, src_c: np.ndarray) -> np.ndarray:
     """The arrangement ``stack[src_r, src_c]`` (P, P, C) rebuilt from its gradients on the torus (module doc,
     step 3): each forward difference is the source's own where both texels come from the same shift, else the mean
-    of the two sources' (both are real differences of the source: the cut keeps off the source's edges)."""
-    gxa = np.zeros_like(stack)
-    gya = np.zeros_like(stack)
-    gxa[:, :-1] = np.diff(stack, axis=1)
-    gya[:-1] = np.diff(stack, axis=0)
-    right_r, right_c = np.roll(src_r, -1, axis=1), np.roll(src_c, -1, axis=1)
-    down_r, down_c = np.roll(src_r, -1, axis=0), np.roll(src_c, -1, axis=0)
-    gx = 0.5 * (gxa[src_r, src_c] + gxa[right_r, right_c - 1])
-    gy = 0.5 * (gya[src_r, src_c] + gya[down_r - 1, down_c])
-    composite = stack[src_r, src_c]
-    return _torus_poisson(gx, gy, composite.mean(axis=(0, 1)))
+    of the two sources' (both are real differences of the source: the cut keeps off the source's edges). One
+    channel at a time (memory)."""
+    right_r, right_c = np.roll(src_r, -1, axis=1), np.roll(src_c, -1, axis=1) - 1
+    down_r, down_c = np.roll(src_r, -1, axis=0) - 1, np.roll(src_c, -1, axis=0)
+    out = np.empty(src_r.shape + (stack.shape[2],), np.float32)
+    for ch in range(stack.shape[2]):
+        a = stack[..., ch].astype(np.float64)
+        gxa = np.zeros_like(a)
+        gya = np.zeros_like(a)
+        gxa[:, :-1] = np.diff(a, axis=1)
+        gya[:-1] = np.diff(a, axis=0)
+        gx = 0.5 * (gxa[src_r, src_c] + gxa[right_r, right_c])
+        gy = 0.5 * (gya[src_r, src_c] + gya[down_r, down_c])
+        del gxa, gya
+        out[..., ch] = _torus_poisson(gx[..., None], gy[..., None], [a[src_r, src_c].mean()])[..., 0]
+    return out
 
 
 # ------------------------------------------------------------------------------------------------ step 5: check
