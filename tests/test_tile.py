@@ -71,10 +71,11 @@ def test_every_map_is_periodic(tiled):
         # the input wrapped by half its size has a jump far above its interior's; the tile has none
         if name != "height":
             before = seam_energy(getattr(maps, name)[:64, :64])
-            assert before["ratio"] > 4.0, (name, before)
-        assert after["ratio"] < 1.6, (name, after)
-        # the cut inside the tile: no jump either (the Poisson blend removes the step)
-        assert info["cut_energy"][name]["ratio"] < 1.6, (name, info["cut_energy"][name])
+            assert before["ratio"] > 15.0, (name, before)  # measured 20 .. 290
+        # one line of this noise varies by itself by about +-20 %: measured 0.28 .. 1.17
+        assert after["ratio"] < 1.3, (name, after)
+        # the cut inside the tile: no jump either (the Poisson blend removes the step); measured 0.70 .. 1.01
+        assert info["cut_energy"][name]["ratio"] < 1.2, (name, info["cut_energy"][name])
     # the recorded numbers are these
     assert info["seam_energy"]["normal"]["ratio"] == pytest.approx(seam_energy(out.normal)["ratio"], rel=1e-5)
 
@@ -222,3 +223,22 @@ def test_cut_energy_sees_a_hard_cut():
     stepped = x + 0.5 * ids
     assert cut_energy(stepped, ids)["ratio"] > 10
     assert cut_energy(x, ids)["ratio"] < 1.6
+
+
+def test_the_blend_removes_the_step_of_the_hard_cut():
+    """The same cut without the gradient-domain blend (the source texels as they are) jumps across the cut; the
+    blend brings every map back to its neighbours' level."""
+    from matcap.tile import _stack, blend, cut_shifts, overlap
+
+    maps = swatch()
+    p, k = 64, overlap(64)
+    sq = MaterialMaps(**{name: getattr(maps, name)[:p + k, :p + k]
+                         for name in ("normal", "mask", "base_color", "roughness", "metallic")})
+    stack, groups = _stack(sq)
+    scale = {name: float(np.var(stack[..., sl])) for name, sl in groups.items()}
+    src_r, src_c, _ = cut_shifts(stack, p, groups, scale)
+    shift_id = (src_r - np.arange(p)[:, None]) * 2 + (src_c - np.arange(p)[None, :])
+    hard, soft = stack[src_r, src_c], blend(stack, src_r, src_c)
+    for name, sl in groups.items():
+        assert cut_energy(hard[..., sl], shift_id)["ratio"] > 5.0, name  # measured 8.7 .. 87
+        assert cut_energy(soft[..., sl], shift_id)["ratio"] < 1.2, name  # measured 0.58 .. 1.07
