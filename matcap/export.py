@@ -205,7 +205,7 @@ def check_options(
             raise MatcapError("a tile size needs the tileable export (--tileable)")
         from matcap.tile import check_size
 
-        check_size(tile_size)
+        check_size(tile_size, what="--tile-size")
 
 
 def export(
@@ -258,7 +258,7 @@ def export(
         if is_tiled(maps) and (tile_size is None or tile_size == maps.shape[0]):
             tiling = {**maps.meta["tiling"], "done": "before the export (the input was tiled)"}
         else:
-            maps, tiling = tile_maps(maps, tile_size)
+            maps, tiling = tile_maps(maps, tile_size, what="--tile-size")
             tiling = {**tiling, "done": "by the export"}
     name = _safe_name(name or folder_name or "material")
     out = Path(out)

@@ -21,14 +21,14 @@ Steps (:func:`tile_maps` does 1-5 on :class:`MaterialMaps`, :func:`tile` adds th
 3. **Gradient-domain blend.** A hard cut still shows a small jump where the two sides differ. Each map is rebuilt
    from its gradients (the source's gradient inside each region; across the cut the mean of the two sources'
    gradients) by a Poisson solve on the torus (FFT), keeping its mean: no jump at the cut, no ghosting (nothing is
-   cross-faded), and the output is exactly periodic. Normals are renormalised afterwards; colours, roughness and
-   metallic clipped to [0, 1].
+   cross-faded), and the output is exactly periodic. Normals are renormalised afterwards and turned so that their
+   mean is +z (:func:`level`); colours, roughness and metallic clipped to [0, 1].
 4. **Height.** Integrated from the tiled normals by the periodic Fourier solve
    (:func:`matcap.height.frankot_chellappa` with ``periodic=True``), so the height tiles too.
 5. **Check.** :func:`seam_energy`: per map, the gradient energy across the tile borders (the tile wrapped by half
    its size) against the interior's; recorded in ``capture.json`` with the cut's.
 
-Limits: the output is a re-arrangement of the square, so a sample with a gradient of light or colour across it
+Limits (measured in docs/export.md, "Tileable texture sets"): the output is a re-arrangement of the square, so a sample with a gradient of light or colour across it
 (vignetting, an uneven lamp) keeps it as a smooth low-frequency change; strongly structured patterns (bricks,
 planks) may show a cut through a feature where no path of low error exists.
 """
@@ -58,21 +58,21 @@ def is_power_of_two(n: int) -> bool:
     return n >= 1 and (n & (n - 1)) == 0
 
 
-def check_size(size, square: int | None = None) -> int | None:
+def check_size(size, square: int | None = None, what: str = "--size") -> int | None:
     """``size`` as an int if it is a power of two in [MIN_SIZE, MAX_SIZE] (and at most ``square``), else a
-    one-line error; None stays None."""
+    one-line error naming the option ``what``; None stays None."""
     if size is None:
         return None
     try:
         value = int(size)
     except (TypeError, ValueError):
-        raise MatcapError(f"--size must be a power of two such as 512 or 1024, got {size!r}") from None
+        raise MatcapError(f"{what} must be a power of two such as 512 or 1024, got {size!r}") from None
     if isinstance(size, float) and size != value:
-        raise MatcapError(f"--size must be a power of two such as 512 or 1024, got {size!r}")
+        raise MatcapError(f"{what} must be a power of two such as 512 or 1024, got {size!r}")
     if not is_power_of_two(value) or not MIN_SIZE <= value <= MAX_SIZE:
-        raise MatcapError(f"--size must be a power of two from {MIN_SIZE} to {MAX_SIZE}, got {size!r}")
+        raise MatcapError(f"{what} must be a power of two from {MIN_SIZE} to {MAX_SIZE}, got {size!r}")
     if square is not None and value > square:
-        raise MatcapError(f"--size {value} is larger than the largest square of surface in the maps ({square} x "
+        raise MatcapError(f"{what} {value} is larger than the largest square of surface in the maps ({square} x "
                           f"{square} pixels); the tiler does not upsample: choose {largest_power_of_two(square)} "
                           "or less")
     return value
@@ -137,7 +137,7 @@ def _resize(arr: np.ndarray, side: int) -> np.ndarray:
 
 
 def _stack(maps: MaterialMaps) -> tuple[np.ndarray, dict[str, slice]]:
-    """The maps as one (H, W, C) float64 array and each map's channel slice (normal, base_color, roughness,
+    """The maps as one (H, W, C) float32 array and each map's channel slice (normal, base_color, roughness,
     metallic: those present)."""
     planes, groups, k = [], {}, 0
     for name in MAP_NAMES[:4]:
@@ -149,7 +149,7 @@ def _stack(maps: MaterialMaps) -> tuple[np.ndarray, dict[str, slice]]:
         planes.append(value)
         groups[name] = slice(k, k + value.shape[2])
         k += value.shape[2]
-    return np.concatenate(planes, axis=2).astype(np.float32), groups
+    return np.concatenate(planes, axis=2), groups
 
 
 def border_offsets(square: MaterialMaps, n: int, p: int, band: int = 4, tolerance: float = 0.08
@@ -163,7 +163,7 @@ def border_offsets(square: MaterialMaps, n: int, p: int, band: int = 4, toleranc
     ``tolerance`` (in log) of the mean of the ``band`` lines on each side; failing that, the offset whose worst map
     is the most ordinary."""
     side = square.shape[0]
-    planes = [np.asarray(v, np.float64) for v in map_planes(square).values()]
+    planes = [np.asarray(v, np.float32) for v in map_planes(square).values()]
     planes = [v[..., None] if v.ndim == 2 else v for v in planes]
     cand = np.arange(side - n + 1)
     line = cand + p - 1  # the source pair (line, line + 1) becomes the border
@@ -174,7 +174,7 @@ def border_offsets(square: MaterialMaps, n: int, p: int, band: int = 4, toleranc
         badness = np.zeros(len(cand))
         for v in planes:
             v = v[other:other + n] if axis == 1 else v[:, other:other + n]
-            energy = (np.diff(v, axis=axis) ** 2).sum(axis=2).mean(axis=1 - axis)
+            energy = (np.diff(v, axis=axis) ** 2).sum(axis=2).mean(axis=1 - axis, dtype=np.float64)
             if not energy.any():
                 continue
             near = np.stack([energy[np.clip(line + j, 0, side - 2)] for j in range(-band, band + 1) if j]).mean(0)
@@ -389,7 +389,8 @@ def seam_report(maps: MaterialMaps) -> dict[str, dict[str, float]]:
 
 
 # ------------------------------------------------------------------------------------------------ tile_maps
-def tile_maps(maps: MaterialMaps, size: int | None = None) -> tuple[MaterialMaps, dict[str, Any]]:
+def tile_maps(maps: MaterialMaps, size: int | None = None, *, what: str = "--size"
+              ) -> tuple[MaterialMaps, dict[str, Any]]:
     """The seamless square power-of-two version of ``maps`` (module doc) and a description of what was done
     (crop, size, cut, seam energies) for ``capture.json``. The result's mask is all True; its height is the
     periodic integral of its normals."""
@@ -401,7 +402,7 @@ def tile_maps(maps: MaterialMaps, size: int | None = None) -> tuple[MaterialMaps
     if side < MIN_SIZE:
         raise MatcapError(f"the mask covers no square of at least {MIN_SIZE} x {MIN_SIZE} pixels (largest: "
                           f"{side} x {side}); tiling needs a square patch of the surface")
-    p = check_size(size, side) or default_size(side)
+    p = check_size(size, side, what) or default_size(side)
     k = overlap(p)
     # no size given: the tile and its overlap at the maps' own resolution (a crop of the square, when it holds
     # them); a size given: the whole square resampled to that size (plus the overlap)
