@@ -242,3 +242,16 @@ def test_the_blend_removes_the_step_of_the_hard_cut():
     for name, sl in groups.items():
         assert cut_energy(hard[..., sl], shift_id)["ratio"] > 5.0, name  # measured 8.7 .. 87
         assert cut_energy(soft[..., sl], shift_id)["ratio"] < 1.2, name  # measured 0.58 .. 1.07
+
+
+def test_cli_tile_then_export_tileable(tmp_path, tiled):
+    maps, _, _ = tiled
+    src = write_result(maps, tmp_path / "res")
+    proc = _cli("tile", str(src), "--out", str(tmp_path / "t"), "--no-preview", "--quiet", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "tiled 64 x 64" in proc.stdout and proc.stderr.strip() == ""
+    proc = _cli("export", str(tmp_path / "t"), "--out", str(tmp_path / "tex"), "--tileable", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    info = json.loads((tmp_path / "tex" / "t.json").read_text())
+    assert info["tiling"]["done"].startswith("before the export")  # the tiled input is used as it is
+    assert not (tmp_path / "t" / "preview_3x3.png").exists()
