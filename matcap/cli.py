@@ -23,6 +23,7 @@ COMMANDS = [
     "relight",
     "gallery",
     "export",
+    "tile",
     "eval",
     "synth",
     "train",

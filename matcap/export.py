@@ -177,6 +177,8 @@ def check_options(
     overwrite: bool = False,
     glb: bool = True,
     occlusion: bool = True,
+    tileable: bool = False,
+    tile_size: int | None = None,
 ) -> None:
     """One-line errors for bad :func:`export` settings (everything that does not need the maps), so that a caller
     can check them before expensive work (``matcap capture --export``). Takes :func:`export`'s keywords."""
@@ -198,6 +200,12 @@ def check_options(
         raise MatcapError(f"{out} exists and is not a folder")
     if ao_radius is not None and not ao_radius >= 1:
         raise MatcapError(f"the occlusion radius must be at least 1 pixel, got {ao_radius}")
+    if tile_size is not None:
+        if not tileable:
+            raise MatcapError("a tile size needs the tileable export (--tileable)")
+        from matcap.tile import check_size
+
+        check_size(tile_size, what="--tile-size")
 
 
 def export(
@@ -215,6 +223,8 @@ def export(
     frame: str = "camera",
     occlusion: bool = True,
     ao_radius: float | None = None,
+    tileable: bool = False,
+    tile_size: int | None = None,
 ) -> dict[str, str]:
     """Write the texture set of ``maps`` (a MaterialMaps or any map source :func:`matcap.formats.load_maps`
     reads: a result folder, an earlier export, a texture set, a ``.glb``) into ``out``.
@@ -225,16 +235,31 @@ def export(
     from the normals with ``height_method``). mesh: also ``NAME_mesh.ply``. occlusion: bake ambient occlusion from
     the height map (:func:`matcap.height.ambient_occlusion`, horizon radius ``ao_radius`` pixels, default 2% of the
     larger image side, at least 4) into the occlusion channels (ORM R, Unity mask map G, glTF occlusionTexture);
-    off: occlusion 1. Refuses to replace existing files
-    unless ``overwrite``. Returns {file key: path written}.
+    off: occlusion 1. tileable: export the seamless set of :mod:`matcap.tile` (maps that are not tiled yet are
+    tiled first, ``tile_size`` pixels or the size it chooses): the height map and the occlusion wrap around the
+    borders and the glb is a 3 x 3 repeat of the tile (UVs 0 .. 3, REPEAT samplers). Refuses to replace existing
+    files unless ``overwrite``. Returns {file key: path written}.
     """
     from matcap.height import ambient_occlusion, height_mesh, integrate_normals
 
     check_options(out, name=name, preset=preset, normal=normal, height=height, mesh=mesh, height_method=height_method,
-                  frame=frame, ao_radius=ao_radius)
+                  frame=frame, ao_radius=ao_radius, tileable=tileable, tile_size=tile_size)
     spec = PRESETS[preset]
     normal = spec.normal if normal is None else normal
     maps, folder_name = _load(maps)
+    tiling = None
+    if tileable:
+        from matcap.tile import is_tiled, tile_maps
+
+        if frame != "camera":
+            raise MatcapError("a tileable export keeps the camera tangent frame (the tile is a flat swatch); "
+                              "drop --fit-frame")
+        height_method = "periodic"
+        if is_tiled(maps) and (tile_size is None or tile_size == maps.shape[0]):
+            tiling = {**maps.meta["tiling"], "done": "before the export (the input was tiled)"}
+        else:
+            maps, tiling = tile_maps(maps, tile_size, what="--tile-size")
+            tiling = {**tiling, "done": "by the export"}
     name = _safe_name(name or folder_name or "material")
     out = Path(out)
     if not np.isfinite(maps.normal).all():
@@ -257,7 +282,8 @@ def export(
         h, w = maps.shape
         radius = float(ao_radius) if ao_radius is not None else max(4.0, 0.02 * max(h, w))
         directions = 16
-        src["occlusion"] = ambient_occlusion(hmap, maps.mask, radius=radius, directions=directions)
+        src["occlusion"] = ambient_occlusion(hmap, maps.mask, radius=radius, directions=directions,
+                                             wrap=tileable)
         occlusion_info = {"method": "horizon-based ambient occlusion of the height map", "radius_px": radius,
                           "directions": directions, "mean": float(src["occlusion"][maps.mask].mean())}
     textures = [TEXTURES[k] for k in ("basecolor", "normal", "roughness", "metallic", "orm", "mask")]
@@ -309,7 +335,8 @@ def export(
                     surface.export(tmp, file_type="ply")
                 files["mesh"] = {"file": paths["mesh"].name, "description": TEXTURES["mesh"].description}
         if glb:
-            imageio.write_bytes_atomic(stage / paths["glb"].name, build_glb(maps, src, missing, name, occlusion))
+            imageio.write_bytes_atomic(stage / paths["glb"].name,
+                                       build_glb(maps, src, missing, name, occlusion, repeats=3 if tileable else 1))
             files["glb"] = {"file": paths["glb"].name, "description": TEXTURES["glb"].description}
 
         h, w = maps.shape
@@ -338,6 +365,10 @@ def export(
             "model": provenance(maps.meta),
             "constant_maps": dict(maps.meta.get("constant_maps") or {}),  # maps set by hand (--constant)
         }
+        if tiling is not None:
+            info["tiling"] = {k: v for k, v in tiling.items() if k != "preview"}
+            info["conventions"]["tiling"] = ("every map tiles (repeat the textures; the glb shows 3 x 3 repeats "
+                                             "with REPEAT samplers)")
         formats.write_json(stage / paths["json"].name, info)
     return {k: str(p) for k, p in paths.items()}
 
@@ -350,16 +381,20 @@ def _pil(x: np.ndarray):
 
 
 def build_glb(maps: MaterialMaps, src: dict[str, np.ndarray], missing: list[str], name: str,
-              occlusion: bool = False) -> bytes:
+              occlusion: bool = False, repeats: int = 1) -> bytes:
     """The glb bytes: one quad, UV = image axes (V up), glTF metallic-roughness material with 8-bit textures
-    (``occlusion``: plus ``src["occlusion"]`` as the occlusionTexture)."""
+    (``occlusion``: plus ``src["occlusion"]`` as the occlusionTexture). ``repeats`` > 1: the quad is that many
+    tiles wide and high, its UVs run 0 .. repeats and every texture's sampler wraps with REPEAT (a tileable set)."""
     import trimesh
     from trimesh.visual.material import PBRMaterial
 
     h, w = maps.shape
-    hx, hy = 0.5, 0.5 * h / w
+    hx, hy = 0.5 * repeats, 0.5 * repeats * h / w
     vertices = np.array([[-hx, hy, 0], [hx, hy, 0], [-hx, -hy, 0], [hx, -hy, 0]], np.float64)  # TL TR BL BR
-    uv = np.array([[0, 1], [1, 1], [0, 0], [1, 0]], np.float64)  # trimesh UVs: v up (glTF flips on export)
+    # trimesh UVs: v up (glTF stores 1 - v): 0 .. repeats in the file, image top = glTF V 0 as for one tile
+    uv = np.array([[0, 1], [1, 1], [0, 0], [1, 0]], np.float64)
+    uv[:, 0] *= repeats
+    uv[:, 1] = 1.0 - repeats * (1.0 - uv[:, 1])
     faces = np.array([[0, 2, 3], [0, 3, 1]])
     kwargs: dict[str, Any] = {"name": name, "doubleSided": False}
     table = formats.LAYOUTS["glb"]
@@ -387,7 +422,45 @@ def build_glb(maps: MaterialMaps, src: dict[str, np.ndarray], missing: list[str]
                            visual=trimesh.visual.TextureVisuals(uv=uv, material=material), process=False)
     scene = trimesh.Scene()
     scene.add_geometry(quad, geom_name=name, node_name=name)
-    return _add_tangents(scene.export(file_type="glb", include_normals=True), (1.0, 0.0, 0.0, 1.0))
+    glb = _add_tangents(scene.export(file_type="glb", include_normals=True), (1.0, 0.0, 0.0, 1.0))
+    return _repeat_samplers(glb) if repeats > 1 else glb
+
+
+GL_REPEAT, GL_LINEAR, GL_LINEAR_MIPMAP_LINEAR = 10497, 9729, 9987
+
+
+def _glb_split(glb: bytes) -> tuple[dict, bytearray]:
+    import struct
+
+    magic, version, _ = struct.unpack_from("<4sII", glb, 0)
+    if magic != b"glTF" or version != 2:
+        raise ValueError("not a glTF 2.0 binary")
+    json_len = struct.unpack_from("<I", glb, 12)[0]
+    tree = json.loads(glb[20:20 + json_len])
+    rest = glb[20 + json_len:]
+    binary = bytearray(rest[8:8 + struct.unpack_from("<I", rest, 0)[0]]) if rest else bytearray()
+    return tree, binary
+
+
+def _glb_join(tree: dict, binary: bytearray) -> bytes:
+    import struct
+
+    binary = binary + b"\0" * (-len(binary) % 4)
+    text = json.dumps(tree, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    total = 12 + 8 + len(text) + 8 + len(binary)
+    return (struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<I4s", len(text), b"JSON") + text
+            + struct.pack("<I4s", len(binary), b"BIN\0") + bytes(binary))
+
+
+def _repeat_samplers(glb: bytes) -> bytes:
+    """Give every texture one explicit sampler: wrapS = wrapT = REPEAT, linear / trilinear filtering."""
+    tree, binary = _glb_split(glb)
+    tree["samplers"] = [{"magFilter": GL_LINEAR, "minFilter": GL_LINEAR_MIPMAP_LINEAR,
+                         "wrapS": GL_REPEAT, "wrapT": GL_REPEAT}]
+    for tex in tree.get("textures", []):
+        tex["sampler"] = 0
+    return _glb_join(tree, binary)
 
 
 def _add_tangents(glb: bytes, tangent: tuple[float, float, float, float]) -> bytes:

@@ -106,6 +106,9 @@ LAYOUTS: dict[str, dict[str, MapFile]] = {
         MapFile("capture", "capture.json", description="inputs used, colour handling, model, settings, timings"),
         *REFINE_FILES,
         *RENDER_FILES,
+        MapFile("preview", "preview_3x3.png", DISPLAY, 8, "sRGB",
+                description="matcap tile: the tiled maps repeated 3 x 3, rendered under the bundled studio map, "
+                            "tone mapped (a picture for people, not data)"),
     ),
     "scene": _table(
         MapFile("image", "{index:03d}.png", ("image.r", "image.g", "image.b"), 16, "linear",

@@ -13,6 +13,9 @@ Two integrators:
   gradient field is first mirror-extended (even in h, odd in the gradient across each border), so the periodic
   FFT solution has no wrap-around artefacts; this is the same as a DCT/Neumann Poisson solve. Fast (scipy.fft) and smooth, but it integrates across the mask edge and across depth
   discontinuities (gradients outside the mask are taken as 0).
+* ``"periodic"``: the same Fourier projection on the grid itself, taken as a torus (no mirror extension), for a
+  tileable normal map (``matcap tile``): the height then tiles too, and a gradient field with a net slope (which
+  no periodic height has) loses only that mean slope.
 * ``"poisson-masked"``: weighted least squares on the masked pixels only (scipy.sparse + spsolve). Each pair of
   4-neighbours inside the mask gives one equation ``h_b - h_a = mean of their gradients``; pairs whose slopes are
   steeper than ``max_slope`` (silhouettes) or whose gradients jump by more than ``jump`` (creases, occlusion
@@ -25,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-METHODS = ("frankot-chellappa", "poisson-masked")
+METHODS = ("frankot-chellappa", "poisson-masked", "periodic")
 
 
 def normals_to_gradients(normal: np.ndarray, mask: np.ndarray | None = None, max_slope: float = 20.0):
@@ -43,20 +46,26 @@ def normals_to_gradients(normal: np.ndarray, mask: np.ndarray | None = None, max
     return np.where(ok, gx, 0.0), np.where(ok, gr, 0.0)
 
 
-def frankot_chellappa(gx: np.ndarray, gr: np.ndarray) -> np.ndarray:
-    """Integrate gradients (∂h/∂column, ∂h/∂row) by Fourier projection on the mirror-extended domain."""
+def frankot_chellappa(gx: np.ndarray, gr: np.ndarray, periodic: bool = False) -> np.ndarray:
+    """Integrate gradients (∂h/∂column, ∂h/∂row) by Fourier projection on the mirror-extended domain
+    (``periodic``: on the grid itself as a torus, for tileable maps)."""
     from scipy import fft
 
     h, w = gx.shape
-    # even extension of h  =>  ∂/∂column is odd across vertical borders, even across horizontal ones (and vice versa)
-    gx_e = np.block([[gx, -gx[:, ::-1]], [gx[::-1, :], -gx[::-1, ::-1]]])
-    gr_e = np.block([[gr, gr[:, ::-1]], [-gr[::-1, :], -gr[::-1, ::-1]]])
+    if periodic:
+        gx_e, gr_e = gx, gr
+    else:
+        # even extension of h  =>  ∂/∂column is odd across vertical borders, even across horizontal ones (and vice
+        # versa)
+        gx_e = np.block([[gx, -gx[:, ::-1]], [gx[::-1, :], -gx[::-1, ::-1]]])
+        gr_e = np.block([[gr, gr[:, ::-1]], [-gr[::-1, :], -gr[::-1, ::-1]]])
+    eh, ew = gx_e.shape
     # forward differences h[c+1] - h[c] should equal the mean gradient of the two pixels (trapezoid rule);
     # least squares in the Fourier basis of the periodic extended grid: H = Σ conj(D) T / Σ |D|²
     tx = 0.5 * (gx_e + np.roll(gx_e, -1, axis=1))
     tr = 0.5 * (gr_e + np.roll(gr_e, -1, axis=0))
-    dx = np.exp(2j * np.pi * fft.fftfreq(2 * w))[None, :] - 1.0
-    dr = np.exp(2j * np.pi * fft.fftfreq(2 * h))[:, None] - 1.0
+    dx = np.exp(2j * np.pi * fft.fftfreq(ew))[None, :] - 1.0
+    dr = np.exp(2j * np.pi * fft.fftfreq(eh))[:, None] - 1.0
     denom = np.abs(dx) ** 2 + np.abs(dr) ** 2
     denom[0, 0] = 1.0
     spec = (np.conj(dx) * fft.fft2(tx, workers=-1) + np.conj(dr) * fft.fft2(tr, workers=-1)) / denom
@@ -121,15 +130,17 @@ def integrate_normals(normal: np.ndarray, mask: np.ndarray | None = None, method
                       max_slope: float = 20.0, jump: float = 1.0) -> np.ndarray:
     """Height map (H, W) float32 in pixel units from camera-space normals (H, W, 3).
 
-    method: ``"frankot-chellappa"`` (default) or ``"poisson-masked"`` (respects the mask edge and depth
-    discontinuities; ``jump`` is the gradient change between neighbours, in height units per pixel, above which
-    two pixels are treated as disconnected). Zero mean over ``mask``, 0 outside it.
+    method: ``"frankot-chellappa"`` (default), ``"periodic"`` (tileable maps) or ``"poisson-masked"`` (respects
+    the mask edge and depth discontinuities; ``jump`` is the gradient change between neighbours, in height units
+    per pixel, above which two pixels are treated as disconnected). Zero mean over ``mask``, 0 outside it.
     """
     n = np.asarray(normal)
     mask = np.ones(n.shape[:2], bool) if mask is None else np.asarray(mask, bool)
     gx, gr = normals_to_gradients(n, mask, max_slope)
     if method == "frankot-chellappa":
         height = frankot_chellappa(gx, gr)
+    elif method == "periodic":
+        height = frankot_chellappa(gx, gr, periodic=True)
     elif method == "poisson-masked":
         height = poisson_masked(gx, gr, mask, max_slope=max_slope, jump=jump)
     else:
@@ -166,7 +177,7 @@ def height_mesh(height: np.ndarray, mask: np.ndarray | None = None, base_color: 
 
 
 def ambient_occlusion(height: np.ndarray, mask: np.ndarray | None = None, *, radius: float = 16.0,
-                      directions: int = 16, steps: int = 16) -> np.ndarray:
+                      directions: int = 16, steps: int = 16, wrap: bool = False) -> np.ndarray:
     """Cosine-weighted ambient occlusion (H, W) float32 in [0, 1] (1 = unoccluded) of a height field, by horizon
     search (the heightfield form of horizon-based AO).
 
@@ -174,7 +185,8 @@ def ambient_occlusion(height: np.ndarray, mask: np.ndarray | None = None, *, rad
     receive nor cast occlusion (AO = 1 there). For each of ``directions`` azimuths the highest horizon within
     ``radius`` pixels (``steps`` samples, denser near the pixel) is measured *relative to the local tangent plane*
     (so a tilted but flat surface is unoccluded), and a slice whose horizon rises by elevation ``e`` keeps
-    ``cos(e)^2`` of its cosine-weighted sky. AO is the mean over azimuths. For the floor of a long trench of width
+    ``cos(e)^2`` of its cosine-weighted sky. AO is the mean over azimuths. ``wrap``: the height field tiles
+    (occluders are searched across the borders, slopes taken periodically), so the occlusion tiles too. For the floor of a long trench of width
     ``w`` and depth ``d`` this gives ``1 / sqrt(1 + (2 d / w)^2)`` exactly in the continuum limit.
     """
     h = np.asarray(height, np.float64)
@@ -187,12 +199,19 @@ def ambient_occlusion(height: np.ndarray, mask: np.ndarray | None = None, *, rad
         raise ValueError(f"radius, directions and steps must be >= 1, got {radius}, {directions}, {steps}")
     rows, cols = h.shape
     pad = int(np.ceil(radius)) + 1
-    hp = np.full((rows + 2 * pad, cols + 2 * pad), -np.inf)
-    hp[pad:pad + rows, pad:pad + cols] = np.where(mask, h, -np.inf)
+    if wrap:
+        hp = np.pad(np.where(mask, h, -np.inf), pad, mode="wrap")
+    else:
+        hp = np.full((rows + 2 * pad, cols + 2 * pad), -np.inf)
+        hp[pad:pad + rows, pad:pad + cols] = np.where(mask, h, -np.inf)
     # local slope along each azimuth from central differences (height 0 outside the mask)
     inside = np.where(mask, h, 0.0)
-    g_col = np.gradient(inside, axis=1)
-    g_up = -np.gradient(inside, axis=0)  # d h / d y with y up = -row
+    if wrap:
+        g_col = 0.5 * (np.roll(inside, -1, axis=1) - np.roll(inside, 1, axis=1))
+        g_up = -0.5 * (np.roll(inside, -1, axis=0) - np.roll(inside, 1, axis=0))  # d h / d y with y up = -row
+    else:
+        g_col = np.gradient(inside, axis=1)
+        g_up = -np.gradient(inside, axis=0)  # d h / d y with y up = -row
     distances = np.unique(np.round(np.geomspace(1.0, radius, steps) * 4) / 4)
     total = np.zeros(h.shape)
     for k in range(directions):

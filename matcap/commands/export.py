@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 PRESET_NAMES = ("gltf", "unreal", "unity-hdrp", "blender")  # = matcap.export.PRESETS (kept here: lazy imports)
-HEIGHT_METHODS = ("frankot-chellappa", "poisson-masked")  # = matcap.height.METHODS
+HEIGHT_METHODS = ("frankot-chellappa", "poisson-masked", "periodic")  # = matcap.height.METHODS
 
 
 def register(sub) -> None:
@@ -26,7 +26,7 @@ def register(sub) -> None:
     p.add_argument("--no-height", action="store_true", help="do not write NAME_height.exr")
     p.add_argument("--height-method", default="frankot-chellappa", choices=HEIGHT_METHODS,
                    help="normal integration for the height map (poisson-masked respects the mask edge and depth "
-                        "discontinuities; default frankot-chellappa)")
+                        "discontinuities; periodic is for tileable maps; default frankot-chellappa)")
     p.add_argument("--no-ao", action="store_true",
                    help="do not bake ambient occlusion from the height map (occlusion channels stay 1)")
     p.add_argument("--ao-radius", type=float, metavar="PX",
@@ -39,6 +39,11 @@ def register(sub) -> None:
     p.add_argument("--constant", action="append", metavar="MAP=V",
                    help="export roughness or metallic as the constant V on the mask, e.g. metallic=0 for a "
                         "non-metal (repeatable; the result folder is not changed)")
+    p.add_argument("--tileable", action="store_true",
+                   help="export the seamless tiled set (matcap tile runs first unless the input is already tiled); "
+                        "the glb is a 3 x 3 repeat of the tile with REPEAT samplers")
+    p.add_argument("--tile-size", type=int, metavar="N",
+                   help="with --tileable: side of the tile, a power of two (default: chosen by matcap tile)")
     p.add_argument("--overwrite", action="store_true", help="replace files of an earlier export with the same name")
     p.set_defaults(func=run)
 
@@ -66,6 +71,7 @@ def run(args) -> int:
         normal=args.normal, height=not args.no_height, mesh=args.mesh, overwrite=args.overwrite, glb=not args.no_glb,
         height_method=args.height_method,
         frame="fit" if args.fit_frame else "camera", occlusion=not args.no_ao, ao_radius=args.ao_radius,
+        tileable=args.tileable, tile_size=args.tile_size,
     )
     for key, path in paths.items():
         print(f"{key:>10}  {path}")
