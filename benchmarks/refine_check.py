@@ -14,7 +14,7 @@
                                                            # Mitsuba under 12 known lights: is the fit trusted?
     python benchmarks/refine_check.py detail [--crops docs/images/detail_crops.png]  # a dome carrying a CC0 normal
                                                            # map's fine detail: is it brought back? (crops figure)
-    ... --set light_iters=0 --set prior_target=network     # any RefineSettings field
+    ... --set light_iters=0 --set prior_normal=0.1        # any RefineSettings field
 
 Every row runs the bundled networks first (the "before"), then :func:`matcap.refine.refine` (the "after").
 ``--threads`` sets torch's CPU threads (default: torch's own choice).

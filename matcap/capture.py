@@ -822,7 +822,7 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
     maps_sub = dataclasses.replace(maps, mask=sub)
     base = settings if settings is not None else RefineSettings()
     quick = dataclasses.replace(base, light_iters=min(base.light_iters, 200), coarse_iters=0,
-                                fine_iters=min(base.fine_iters, 10 if base.pixel_solver == "lm" else 80))
+                                fine_iters=min(base.fine_iters, 10))
     rmse = {}
     for lin, cap in caps.items():
         images = [cap.images[i] for i in maps.meta["images_used"]]

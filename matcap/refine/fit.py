@@ -33,98 +33,112 @@ from scenes.materialmaps import MaterialMaps
 LUMA = (0.2126, 0.7152, 0.0722)
 
 
-GLOSSY_TRUST_AMBIENT = 0.05  # RefineSettings.trust_ambient (default; ``--no-refine-glossy``: 0)
+GLOSSY_TRUST_AMBIENT = 0.05  # RefineSettings.trust_ambient by default (``--no-glossy``: 0)
 
 
 @dataclass
 class RefineSettings:
-    """Knobs of :func:`refine` (recorded in fit.json). Prior weights are per pixel, against a data term summed
-    over the images (so more photos weigh more)."""
+    """Settings of :func:`refine` (recorded in fit.json), grouped by stage. The fit's photo units: the photos are
+    scaled so that their mean over the mask is 0.5. Prior weights are per pixel, against a data term summed over
+    the photos (so more photos weigh more)."""
 
-    light_model: str = "directional"  # distant lights, or "point": a lamp per photo whose distance the fit finds
-    # (started at the distant solution: infinitely far, free to come closer; far lamps stay far)
-    rounds: int = 1  # >1: alternate (lights from the refined maps, maps again) this many times in all
-    joint_lights: bool = True  # the light fit also frees the subsample's maps (anchored by the prior); False:
-    # lights from the network maps alone (measured worse: UW light directions 18-24 deg instead of 6-7)
-    ambient: str = "shared"  # "shared": one SH ambient for every photo (a fixed room light); "per-image"; "none"
-    prior_normal: float = 0.5  # weight on |n - n_network|^2
-    prior_base: float = 0.5  # on mean_c (log(b + 0.02) - log(b_net + 0.02))^2
-    prior_rough: float = 0.5  # on (r - r_net)^2
-    prior_metal: float = 0.5  # on (m - m_net)^2
-    cauchy: float = 0.15  # Cauchy scale, in the fit's units (the photos' mean over the mask is 0.5)
-    light_side: int = 256  # the light fit runs on a copy downsampled to this longer side
-    light_pixels: int = 4096  # pixels of that copy in the joint light fit
+    # -- the light model (estimated lights; known lights keep the kind their file gives)
+    light_model: str = "directional"
+    """"directional": distant lights (where they fail to explain the photos, near lamps are tried, see
+    ``near_check``); "point": a lamp per photo whose distance the fit always finds."""
+    ambient: str = "shared"
+    """"shared": one order-2 SH ambient for every photo (a fixed room light); "per-image"; "none"."""
+
+    # -- lights stage: a downsampled copy, a subsample of its pixels, Adam on lights (and those pixels' maps)
+    light_side: int = 256
+    """The light fit runs on a copy whose longer side is at most this many pixels."""
+    light_pixels: int = 4096
+    """Pixels of that copy taking part in the light fit."""
     light_iters: int = 400
-    kept_light_iters: int = 200  # where the maps are kept, the lights alone are fitted to them (examples/bunny:
-    # re-render 25.51 dB after 200 and after 400 steps; 24.46 when the subsample's maps moved with the lights)
-    pixel_solver: str = "lm"  # the per-pixel solve: "lm" (Levenberg-Marquardt per pixel, matcap.refine.solve) or
-    # "adam" (first-order, the solver before session 17; give it about ten times the iterations: 100 / 150)
-    coarse_iters: int = 10  # per-pixel iterations at half size (skipped when the maps are <= 128 px)
-    fine_iters: int = 20  # per-pixel iterations at full size
-    pixel_tol: float = 1e-4  # "lm": a pixel is done (and drops out of the solve) once two iterations in a row
-    # lowered its loss by less than this share of it
+    """Adam steps of the light fit."""
+    kept_light_iters: int = 200
+    """Adam steps of the light fit where the maps are kept (the lights are fitted to the networks' maps)."""
     lr_light: float = 0.02
+    """Adam step size of the light parameters (directions, log intensities, ambient, inverse distances)."""
     lr_pixel: float = 0.05
-    chunk: int = 32768  # pixels per chunk of the Adam solve and of the re-render (memory)
-    lm_observations: int = 262144  # "lm": pixels x photos per chunk (its Jacobians' memory grows with both;
-    # 512^2: 16,384 pixels for 16 photos, 5,461 for 48: 49 s where 32,768 took 81 s, peak 1.9 GB against 2.9)
-    variation_threshold: float = 0.08  # per-pixel light variation (std / mean over photos) below this is weak
-    fit_brdf: bool = True  # False: only normals are refined (base colour still is: it carries the albedo)
-    light_init: str = "linear"  # "linear": Lambertian factorization, its ambiguity fixed by the network normals
-    # and the occluding contour (matcap.refine.linear; near lamps start from its distant solution);
-    # "network": least squares on the network's normals alone (the fit before the factorization existed)
-    contour_weight: float = 1.0  # weight of the occluding-contour normals against the network's in "linear"
-    contour_nz: float = 0.1  # n_z given to the contour pixels' normals (a pixel centre lies inside the contour)
-    contour_gate: float = 0.6  # mask-edge pixels count as occluding contour where the network's n_z is below this
-    linear_pixels: int = 20000  # pixels of the light-fit copy used by the factorization (all contour pixels too)
-    prior_target: str = "photos"  # what the normal prior pulls toward (with light_init "linear"): "network",
-    # "aligned" (the network's normals through the 3x3 that best maps them onto the photos' Lambertian normals),
-    # "photos" (those Lambertian normals)
-    linear_init: str = "svd"  # start of the factorization: "svd" (the photos alone) or "network"
-    ambiguity: str = "integrability"  # how the factorization's 3x3 ambiguity is fixed: "integrability" (the
-    # photos' normals must form one surface; the prior fixes only the bas-relief remainder, 4 numbers), "prior"
-    # (all 9 numbers from the network's and the contour's normals). UW at 160 px through the whole fit: normals
-    # 11.00 vs 15.31 degrees, light-direction medians 8.16 vs 11.48 (docs/refine.md)
-    equal_lights: float = 150.0  # with "integrability": weight of "every photo got about the same irradiance" (one
-    # lamp moved at a similar distance) against the prior's misfit, relative to the prior's own (so a good prior
-    # keeps its bas-relief against unequal lamps) in choosing the bas-relief; 0 ignores it. UW 10.88, matte domes
-    # with tinted lamps 3.7-4.1 (30 on the unscaled prior, session 11: 11.00, 4.8-5.8; docs/refine.md session 15)
-    trust_residual: float = 0.05  # the factorization must explain the photos to this relative RMS ...
-    trust_inliers: float = 0.85  # ... with this share of inlier observations; otherwise the photos are not
-    # explained by distant lights on a Lambertian-like surface (environment light, many objects, a mirror-like
-    # material), the fit would only move the maps away from the networks', and they are kept as they are (the
-    # lights are still fitted, for lights.json). inf / 0 trust every capture.
-    trust_solved: float = 0.5  # ... and under the lights found, this share of the pixels must get a Lambertian
-    # normal facing the camera (UW: buddha 0.66, the others 0.97-0.99; a bumpy plane whose lights the network's
-    # normals resolved wrongly, 65 degrees off: 0.07-0.25)
-    trust_spread: float = 0.02  # ... and the photos must not be (nearly) rank 1, as a flat sample's are (its one
-    # normal cannot tell the lights apart: a flat wood sample 0.003, UW captures 0.07-0.09)
-    trust_ambient: float = GLOSSY_TRUST_AMBIENT  # where only the residual / inliers part of the check fails (a
-    # glossy object: its highlights are no Lambertian's) and the near-lamp look below is not kept, the fit runs again
-    # with distant lights and is kept if its fixed ambient, and the near-lamp fit's, give at most this share of the
-    # object's irradiance (one lamp per photo in a dark room). Gains: synthetic split 18.52 -> 18.24, glossy domes
-    # 3.80 -> 1.19, 3.99 -> 2.3. The near-lamp fit's share is the gate because a turning environment map passes the
-    # distant fit's alone (a glossy dome: near 0.061, distant 0.040, which would take it 4.19 -> 6.14). 0
-    # (``--no-refine-glossy``) turns this look off. docs/refine.md, sessions 13 and 15
-    trust_ambient_far: float = 0.1  # ... and up to this share (both fits) where the near-lamp fit left the lamps at
-    # least ``far_distance`` object radii away: a fixed room light lets them stay far, light that turns between
-    # photos pulls them in (11-15 radii measured), so a glossy object under a lamp in a lit room is fitted too
-    far_distance: float = 30.0  # (measured: a room light of 8 %, 95 radii; turning maps 11-15, synthetic 10.7-114)
-    near_check: bool = True  # where only the residual / inliers part of the check fails, fit lamps whose
-    # distance the fit finds (a hand-held lamp near the object: its falloff is no distant light's) and keep that
-    # fit if ...
-    near_distance: float = 15.0  # ... the median lamp came out within this many object radii (the radius of the
-    # disc as large as the mask; measured: lamps at 3.2 / 6.4 / 10.6 radii found at 3-8 / 10.3; distant lights at
-    # 22-223, a dir + environment light at 13.9-15.0, which the loss ratio below rejects), ...
-    near_ambient: float = 0.2  # ... its fixed ambient gives at most this share of the object's irradiance (with
-    # --refine-light point: only this), ...
-    near_loss_ratio: float = 0.8  # ... and the distances cut the light fit's photometric loss to at most this
-    # share of what distant lamps reach in as many steps (matte near-lit domes 0.28-0.55; environment-lit scenes
-    # 0.89-0.99), ...
-    near_dark: float = 0.05  # ... or the fixed ambient gives at most this share (a dark room: a glossy object's
-    # highlights dominate its loss, near-lit glossy domes 0.94-0.95)
+    """Adam step size of the subsample's map parameters during the light fit."""
+
+    # -- estimated lights: the Lambertian factorization and its bas-relief choice (matcap.refine.linear)
+    linear_pixels: int = 20000
+    """Pixels of the light-fit copy used by the factorization (every occluding-contour pixel too)."""
+    contour_weight: float = 1.0
+    """Weight of the occluding contour's normals against the networks' in fixing the bas-relief."""
+    contour_nz: float = 0.1
+    """n_z given to contour pixels' normals (a pixel centre lies just inside the contour)."""
+    contour_gate: float = 0.6
+    """Mask-edge pixels count as occluding contour where the networks' n_z is below this."""
+    equal_lights: float = 150.0
+    """Weight of "every photo got about the same irradiance" (one lamp moved at a similar distance) against the
+    prior's misfit, relative to the prior's own, in choosing the bas-relief; 0 ignores it."""
+
+    # -- estimated lights: the checks that decide whether the maps may move
+    trust_residual: float = 0.05
+    """The factorization must explain the photos to this relative RMS ..."""
+    trust_inliers: float = 0.85
+    """... with this share of inlier observations (else: not distant lights on a matte-like surface);"""
+    trust_solved: float = 0.5
+    """... under the lights found, this share of the pixels must get a Lambertian normal facing the camera;"""
+    trust_spread: float = 0.02
+    """... and the photos' third singular value must be at least this share of the first (a flat sample's
+    photos are nearly rank 1: its one normal cannot tell the lights apart)."""
+    trust_ambient: float = GLOSSY_TRUST_AMBIENT
+    """Glossy look: where only the residual / inliers check fails and the near-lamp look is not kept, distant
+    lamps are fitted anyway and kept if the fixed ambient (of that fit and of the near-lamp fit) gives at most this
+    share of the object's irradiance; 0 turns the look off."""
+    trust_ambient_far: float = 0.1
+    """... up to this share where the near-lamp fit left the lamps at least ``far_distance`` object radii away."""
+    far_distance: float = 30.0
+    """Object radii beyond which a near-lamp fit's lamps count as far (a fixed room light lets them stay far)."""
+    near_check: bool = True
+    """Near-lamp look: where only the residual / inliers check fails, fit lamps whose distances the fit finds
+    and keep that fit if the conditions below hold."""
+    near_distance: float = 15.0
+    """... the median lamp within this many object radii (the radius of the disc as large as the mask);"""
+    near_ambient: float = 0.2
+    """... the fixed ambient at most this share of the object's irradiance (with light_model "point": only this);"""
+    near_loss_ratio: float = 0.8
+    """... and the distances cut the light fit's loss to at most this share of what distant lamps reach ..."""
+    near_dark: float = 0.05
+    """... unless the fixed ambient is at most this share (a dark room, where highlights dominate the loss)."""
+
+    # -- per-pixel stage: Levenberg-Marquardt per pixel (matcap.refine.solve)
+    coarse_iters: int = 10
+    """Iterations at half size (skipped when the maps are 128 px or smaller)."""
+    fine_iters: int = 20
+    """Iterations at full size."""
+    pixel_tol: float = 1e-4
+    """A pixel is done once two iterations in a row lowered its loss by less than this share of it."""
+    lm_observations: int = 262144
+    """Pixels x photos per chunk of the solve (its Jacobians' memory grows with both)."""
+    chunk: int = 32768
+    """Pixels per chunk of the re-render."""
+    cauchy: float = 0.15
+    """Scale of the Cauchy loss on the photo residuals, in the fit's units: shadows, interreflections and
+    highlights the model cannot explain weigh less."""
+    prior_normal: float = 0.5
+    """Weight of |n - n_prior|^2 (n_prior: calibrated Lambertian normals from the photos where solved, else the
+    networks')."""
+    prior_base: float = 0.5
+    """Weight of mean_c (log(b + 0.02) - log(b_net + 0.02))^2."""
+    prior_rough: float = 0.5
+    """Weight of (r - r_net)^2."""
+    prior_metal: float = 0.5
+    """Weight of (m - m_net)^2."""
+    fit_brdf: bool = True
+    """False: roughness and metallic stay the networks' (normals and base colour are still fitted)."""
+    variation_threshold: float = 0.08
+    """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
+    less, and a warning names the share of such pixels)."""
+
     seed: int = 0
+    """Seed of every random choice (pixel subsamples); the fit is repeatable bit for bit for a seed and device."""
     device: str = "cpu"
+    """torch device."""
 
 
 @dataclass
@@ -319,9 +333,8 @@ def _linear_lights(obs, mask, arrays, s: RefineSettings, rng, lambertian: bool =
     r, c = rows[idx], cols[idx]
     lum = _luminance(obs, r, c)
     alb = arrays["base"][r, c] @ np.asarray(LUMA, np.float32)
-    fit = factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.contour_weight,
-                    init=s.linear_init)
-    if s.ambiguity == "integrability" and _distrust(len(obs), fit, None, s, lambertian) is None:
+    fit = factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.contour_weight)
+    if _distrust(len(obs), fit, None, s, lambertian) is None:
         fit = _integrable(fit, obs, mask, arrays["normal"], sel, c_normal, s.contour_weight, s.equal_lights)
     return fit
 
@@ -374,37 +387,21 @@ def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSett
     return None
 
 
-def _photo_normals(obs, mask, network, s_lum, s: RefineSettings, report=None):
-    """Start and prior normal images (H, W, 3) from the photos under the factorization's lights.
-
-    start: calibrated robust Lambertian normals where a pixel is lit in 4 photos or more, the network's elsewhere;
-    prior (``s.prior_target``): "network" as it is, "aligned": the network's normals through the global 3x3 that
-    best maps them onto the photos' normals (their flattening removed, their local detail kept), "photos": start.
-    ``report``: an earlier call's report, whose matrix is used again (for a downsampled copy).
-    """
-    from matcap.refine.linear import align, solve_normals
+def _photo_normals(obs, mask, network, s_lum, report=None):
+    """Calibrated photometric-stereo normals (H, W, 3) of the photos ``obs`` (K, H, W, 3) under the lights
+    ``s_lum`` (K, 3: direction times luminance irradiance): robust Lambertian least squares where a pixel is lit in
+    4 photos or more, the networks' normals ``network`` elsewhere. They are both the start and the prior of the
+    per-pixel stage. Returns (normals, report: ``solved_fraction``); ``report`` given: reused (a downsampled
+    copy)."""
+    from matcap.refine.linear import solve_normals
 
     rows, cols = np.nonzero(mask)
-    lum = _luminance(obs, rows, cols)
-    net = network[rows, cols]
-    n, _, solved = solve_normals(lum, s_lum, net)
+    n, _, solved = solve_normals(_luminance(obs, rows, cols), s_lum, network[rows, cols])
     start = network.copy()
     start[rows, cols] = n
     if report is None:
-        g = align(net[solved], n[solved]) if solved.sum() >= 16 else np.eye(3)
-        report = {"solved_fraction": round(float(solved.mean()), 4), "network_to_photos": g.round(5).tolist()}
-    if s.prior_target == "network":
-        return start, network, report
-    if s.prior_target == "photos":
-        return start, start, report
-    g = np.asarray(report["network_to_photos"], np.float64)
-    a = net.astype(np.float64) @ g.T
-    a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
-    a[a[:, 2] < 0.0, 2] = 0.0
-    a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
-    prior = network.copy()
-    prior[rows, cols] = a.astype(np.float32)
-    return start, prior, report
+        report = {"solved_fraction": round(float(solved.mean()), 4)}
+    return start, report
 
 
 def _init_lights(torch, prob: _Problem, s: RefineSettings, device, directions=None):
@@ -612,13 +609,13 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     irr = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, arr_l["normal"][rows_l, cols_l],
                            None if given is None else given @ luma)
     s_lum = directions * irr[:, None]
-    start, prior, photo_report = _photo_normals(obs, mask, arrays["normal"], s_lum, s)
-    arrays = dict(arrays, normal=prior)
+    start, photo_report = _photo_normals(obs, mask, arrays["normal"], s_lum)
+    arrays = dict(arrays, normal=start)
     if hw_l == (h, w):
         arr_l, start_l = arrays, start
     else:
-        start_l, prior_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, s, photo_report)
-        arr_l = dict(arr_l, normal=prior_l)
+        start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, photo_report)
+        arr_l = dict(arr_l, normal=start_l)
     n_l = int(mask_l.sum())
     idx = np.sort(rng.choice(n_l, size=min(n_l, s.light_pixels), replace=False))
     prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
@@ -824,28 +821,19 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         w_l = _resize(weight, hw_l)
     n_l = int(mask_l.sum())
     idx = np.sort(rng.choice(n_l, size=min(n_l, s.light_pixels), replace=False))
-    if s.light_init not in ("linear", "network"):
-        raise MatcapError(f"light_init must be 'linear' or 'network', got {s.light_init!r}")
-    if s.ambiguity not in ("integrability", "prior"):
-        raise MatcapError(f"ambiguity must be 'integrability' or 'prior', got {s.ambiguity!r}")
-    if s.prior_target not in ("network", "aligned", "photos"):
-        raise MatcapError(f"prior_target must be 'network', 'aligned' or 'photos', got {s.prior_target!r}")
-    if s.pixel_solver not in ("lm", "adam"):
-        raise MatcapError(f"pixel_solver must be 'lm' or 'adam', got {s.pixel_solver!r}")
     start = start_l = None
-    linear = linear_report = None
-    if s.light_init == "linear":  # the factorization (distant lights; near ones start from its solution)
-        linear_report = {}
-        if k_count >= 4:
-            linear = _linear_lights(obs_l, mask_l, arr_l, s, rng, lambertian)
-        if _distrust(k_count, linear, None, s, lambertian) is None:  # start (and prior) normals from the photos' lights
-            s_lum = linear.directions * linear.irradiance[:, None]
-            start, prior, linear_report = _photo_normals(obs, mask, arrays["normal"], s_lum, s)
-        reason = _distrust(k_count, linear, linear_report.get("solved_fraction"), s, lambertian)
-        linear_report = {**linear_report, "trusted": reason is None, **({"reason": reason} if reason else {})}
-        if reason is not None and lambertian and _distrust(k_count, linear, None, s, False) is None:
-            linear_report["lambertian_only"] = True  # only residual / inliers failed: see trust_ambient
-    trusted = linear_report is None or linear_report["trusted"]
+    linear = None
+    linear_report = {}  # the factorization (distant lights; near ones start from its solution)
+    if k_count >= 4:
+        linear = _linear_lights(obs_l, mask_l, arr_l, s, rng, lambertian)
+    if _distrust(k_count, linear, None, s, lambertian) is None:  # start (and prior) normals from the photos' lights
+        s_lum = linear.directions * linear.irradiance[:, None]
+        start, linear_report = _photo_normals(obs, mask, arrays["normal"], s_lum)
+    reason = _distrust(k_count, linear, linear_report.get("solved_fraction"), s, lambertian)
+    linear_report = {**linear_report, "trusted": reason is None, **({"reason": reason} if reason else {})}
+    if reason is not None and lambertian and _distrust(k_count, linear, None, s, False) is None:
+        linear_report["lambertian_only"] = True  # only residual / inliers failed: see trust_ambient
+    trusted = linear_report["trusted"]
     if not lambertian and not trusted:  # the Principled fit was not even started: refine() keeps the first pass
         return linear_report
     if not trusted:
@@ -853,12 +841,12 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     if near and not lambertian:  # the distant lamps' photo normals carry the near lamps' falloff: the network's
         start = None  # are the start and the prior (a near-lit dome 1.50 / 1.63 degrees, against 2.29 / 2.41)
     elif linear is not None and trusted:
-        arrays = dict(arrays, normal=prior)
+        arrays = dict(arrays, normal=start)
         if hw_l == (h, w):
             arr_l, start_l = arrays, start
         else:
-            start_l, prior_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, s, linear_report)
-            arr_l = dict(arr_l, normal=prior_l)
+            start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, linear_report)
+            arr_l = dict(arr_l, normal=start_l)
     prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
     lights = _init_lights(torch, prob, s, device, linear.directions if linear is not None and trusted else None)
     from matcap.refine.model import PixelParams
@@ -871,7 +859,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         light_t = [lights.vec, lights.log_intensity] + ([lights.sh] if s.ambient != "none" else [])
         light_t += [lights.inv_distance] if lights.kind == "near" else []
         groups = [{"params": light_t, "lr": s.lr_light}]
-        if s.joint_lights and trusted:  # kept maps: the lights are fitted to them as they are
+        if trusted:  # kept maps: the lights are fitted to them as they are
             groups.append({"params": px.tensors(), "lr": s.lr_pixel})
         for g in groups:
             for t in g["params"]:
@@ -922,17 +910,9 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
 
     # ---- 2. per pixel, lights fixed: half size, then full size
     t0 = time.perf_counter()
-    coarse_iters, fine_iters, rounds = (s.coarse_iters, s.fine_iters, s.rounds) if trusted else (0, 0, 1)
+    coarse_iters, fine_iters = (s.coarse_iters, s.fine_iters) if trusted else (0, 0)
     full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
                                             coarse_iters, fine_iters)
-    for r in range(1, rounds):  # lights again from the refined maps (frozen), then the maps again
-        idx_r = np.sort(rng.choice(len(full), size=min(len(full), s.light_pixels), replace=False))
-        sub = full.part(idx_r)
-        px_sub = PixelParams(*(t[torch.from_numpy(idx_r)].detach() for t in px_full.tensors()))
-        bar.add_total(s.light_iters // 2)
-        lights = joint(lights, s.light_iters // 2, f"lights {r + 1}", sub, px_sub)
-        px_full = _solve_pixels(torch, full, px_full, lights, s, c, s.fine_iters // 2, bar, f"maps {r + 1}")
-        iters_done["fine"] += s.fine_iters // 2
     timings["maps_s"] = time.perf_counter() - t0
     bar.close()
 
@@ -957,7 +937,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         "photo_scale": scale,
         "linear": None if linear_report is None else {**linear_report, **({} if linear is None else {
             "contour_pixels": linear.contour_pixels, "residual": round(linear.residual, 4),
-            "inliers": round(linear.inliers, 4), "spread": round(linear.spread, 5), "ambiguity": s.ambiguity})},
+            "inliers": round(linear.inliers, 4), "spread": round(linear.spread, 5)})},
         "kept_network_maps": not trusted,
         "ambient_share": round(share, 4),
         **({"light_distance_median": dist} if near else {}),
@@ -1090,31 +1070,18 @@ def ambient_share(torch, lights, pos, normal) -> float:
 
 def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
     """Every pixel's maps with the lights fixed (independent problems), chunk by chunk: Levenberg-Marquardt
-    (``s.pixel_solver`` "lm") or Adam on the same loss (:func:`_loss`)."""
+    (:func:`_lm_pixels`) on the loss of :func:`_loss`."""
     from matcap.refine.model import PixelParams
 
     lights = lights.detached()
     out = [t.detach().clone() for t in px0.tensors()]
     n = len(prob)
-    step = max(256, s.lm_observations // prob.obs.shape[0]) if s.pixel_solver == "lm" else s.chunk
+    step = max(256, s.lm_observations // prob.obs.shape[0])
     chunks = [slice(i, min(i + step, n)) for i in range(0, n, step)]
     bar.add_total(iters * len(chunks))
     for sl in chunks:
         part = prob.part(sl)
-        if s.pixel_solver == "lm":
-            solved = _lm_pixels(torch, part, [t[sl] for t in out], lights, s, c, iters,
-                                lambda loss: bar.step(label, loss))
-        else:
-            px = PixelParams(*(t[sl].clone().requires_grad_(True) for t in out))
-            opt = torch.optim.Adam(px.tensors(), lr=s.lr_pixel)
-            for it in range(iters):
-                opt.zero_grad()
-                per, _ = _loss(torch, part, px, lights, s, c, s.fit_brdf)
-                loss = per.sum()
-                loss.backward()
-                opt.step()
-                bar.step(label, float(loss.detach()) / max(1, len(part)))
-            solved = px.tensors()
+        solved = _lm_pixels(torch, part, [t[sl] for t in out], lights, s, c, iters, lambda loss: bar.step(label, loss))
         for o, t in zip(out, solved):
             o[sl] = t.detach()
     return PixelParams(*out)
@@ -1197,36 +1164,45 @@ def lights_to_entries(lights, scale: float) -> list[dict[str, Any]]:
 
 
 class _Bar:
-    """tqdm progress with the current loss (or a callback ``progress(label, done, total, loss)``)."""
+    """The fit's progress (``networks.progress``: a bar on a terminal, one line per stage in logs, with the stage's
+    last loss), or a callback ``progress(label, done, total, loss)``. A stage is a run of steps with one label
+    ("lights", "point lights", "maps 1/2", "maps")."""
 
     def __init__(self, progress, s: RefineSettings, near: bool = False, total: int | None = None):
         self.cb = progress if callable(progress) else None
+        self.show = progress is True
         self.done = 0
         self.total = s.light_iters * (2 if near else 1) if total is None else total
+        self.stage = None
         self.bar = None
-        if progress is True:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=self.total, desc="refine", unit="it", leave=False, dynamic_ncols=True)
+        self.loss = float("nan")
 
     def add_total(self, n: int) -> None:
         self.total += n
-        if self.bar is not None:
-            self.bar.total = self.total
-            self.bar.refresh()
 
     def step(self, label: str, loss: float) -> None:
         self.done += 1
-        if self.bar is not None:
-            self.bar.set_description(f"refine {label}", refresh=False)
-            self.bar.set_postfix_str(f"loss {loss:.4g}", refresh=False)
+        if self.show:
+            if label != self.stage:
+                self._close_stage()
+                from networks.progress import progress
+
+                self.stage = label
+                self.bar = progress(total=None, desc=f"fit {label}", unit="it")
+            self.loss = loss
             self.bar.update(1)
         if self.cb is not None:
             self.cb(label, self.done, self.total, loss)
 
-    def close(self) -> None:
+    def _close_stage(self) -> None:
         if self.bar is not None:
+            self.bar.set_postfix(loss=f"{self.loss:.4g}")
             self.bar.close()
+            self.bar = None
+
+    def close(self) -> None:
+        self._close_stage()
+        self.stage = None
 
 
 def fit_light_only(image: np.ndarray, maps: MaterialMaps, settings: RefineSettings | None = None) -> dict[str, Any]:

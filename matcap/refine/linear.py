@@ -303,7 +303,7 @@ def _shape_fit(a: np.ndarray, b: np.ndarray, prior: np.ndarray, q: np.ndarray, l
 
     The prior's misfit is measured relative to its value at the start (``a`` itself, the least-squares bas-relief
     fit to the prior): a prior that fits well (a good network) is not given up for equal irradiances that
-    tinted or unequal lamps never had, one that fits poorly leaves the choice to them (docs/refine.md, session 15).
+    tinted or unequal lamps never had, one that fits poorly leaves the choice to them.
     """
     from scipy.optimize import minimize
 

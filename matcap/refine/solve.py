@@ -8,8 +8,8 @@ where it lowers that pixel's loss), and the P x P systems solved by :func:`chole
 elementwise over the pixels so that the result does not depend on how a BLAS splits the work (the fit must be
 bit-for-bit repeatable for a seed).
 
-Measured against the Adam solve it replaced (docs/refine.md, session 17): a glossy dome at 256^2 is re-rendered at
-43.8 dB after 10 + 20 iterations (34.8 dB after 100 + 150 Adam steps), and the fit at 512^2 takes 23 s instead of 40.
+A second-order solve: on glossy surfaces a first-order one (Adam) needs about ten times the iterations and
+still stops short of the minimum (tests/test_refine_solve.py).
 """
 from __future__ import annotations
 
