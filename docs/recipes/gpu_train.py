@@ -96,15 +96,18 @@ class Call:
 
     # ------------------------------------------------------------------ 1-2: Mitsuba and its variant
     def setup_mitsuba(self) -> None:
-        try:
-            subprocess.run([sys.executable, "-c", "import mitsuba"], env=self.env, check=True, capture_output=True)
-            self.say("mitsuba: installed here")
-            return
-        except subprocess.CalledProcessError:
-            pass
-        archives = sorted(Path(self.a.carry).glob("mitsuba/mitsuba-*.tar.xz"))
+        if not self.a.carried_mitsuba:
+            try:
+                subprocess.run([sys.executable, "-c", "import mitsuba"], env=self.env, check=True, capture_output=True)
+                self.say("mitsuba: installed here")
+                return
+            except subprocess.CalledProcessError:
+                pass
+        tag = f"cp{sys.version_info.major}{sys.version_info.minor}"
+        archives = sorted(Path(self.a.carry).glob(f"mitsuba/mitsuba-*-{tag}.tar.xz"))
         if not archives:
-            raise SystemExit(f"gpu_train: no Mitsuba here and none carried ({self.a.carry}/mitsuba/*.tar.xz)")
+            raise SystemExit(f"gpu_train: no Mitsuba here and none carried for this Python "
+                             f"({self.a.carry}/mitsuba/*-{tag}.tar.xz: docs/recipes/build_mitsuba_carry.py)")
         site = self.work / "site"
         if not (site / ".unpacked").exists():
             site.mkdir(exist_ok=True)
@@ -114,9 +117,10 @@ class Call:
                 else:
                     tar.extractall(site)
             (site / ".unpacked").write_text(archives[-1].name)
-        self.env["PYTHONPATH"] = os.pathsep.join([self.env["PYTHONPATH"], str(site)])
-        subprocess.run([sys.executable, "-c", "import mitsuba"], env=self.env, check=True)
-        self.say(f"mitsuba: unpacked {archives[-1].name} into {site}")
+        self.env["PYTHONPATH"] = os.pathsep.join([str(site), self.env["PYTHONPATH"]])
+        where = subprocess.run([sys.executable, "-c", "import mitsuba; print(mitsuba.__file__)"], env=self.env,
+                               check=True, capture_output=True, text=True).stdout.strip()
+        self.say(f"mitsuba: {archives[-1].name} unpacked into {site} ({where})")
 
     def choose_variant(self) -> str:
         if self.state.get("variant"):
@@ -412,6 +416,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=os.environ.get("OUT", "/tmp/matcap_gpu_out"), help="what comes back ($OUT)")
     ap.add_argument("--carry", default=str(REPO / "carry"), help="carried folder (mitsuba/, resume/)")
     ap.add_argument("--variant", default="auto", choices=("auto",) + VARIANTS)
+    ap.add_argument("--carried-mitsuba", action="store_true", help="use the carried Mitsuba even where one is "
+                    "installed (to check the carried build)")
     ap.add_argument("--assets", default=None, help="assets folder (meshes/, envmaps/, textures/); default procedural")
     ap.add_argument("--seed-base", type=int, default=2000, help="a machine first used in call M renders seed BASE+M")
     ap.add_argument("--max-scenes", type=int, default=100000, help="scenes per machine at most")
