@@ -16,6 +16,7 @@ data-parallel ranks draw different samples without a sampler.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -50,6 +51,65 @@ def list_scenes(root: str | Path) -> list[Path]:
     if not scenes:
         raise ValueError(f"{root}: no scenes with data.npz (make some with `matcap synth --out {root}`)")
     return scenes
+
+
+class GrowingScenes:
+    """The scenes of a dataset folder that is still being written (a generator rendering into it), in an order that
+    only ever grows at the end: each :meth:`refresh` appends the scene folders that appeared since, sorted by name,
+    so the first ``n`` scenes never change and a sample that picks scene ``i < n`` always gets the same one.
+
+    The order is kept in ``index`` (a text file, one scene name per line, written before a larger count is used):
+    worker processes read it to follow the growth, and it records which scenes a run trained on in which order.
+    ``resume=True`` starts from an existing ``index`` when every scene it names is still there (the same folder on
+    the same machine); otherwise the folder is listed afresh and the index rewritten.
+    """
+
+    def __init__(self, root: str | Path, index: str | Path, resume: bool = False):
+        self.root = Path(root)
+        self.index = Path(index)
+        self.scenes: list[Path] = []
+        kept = read_scene_index(self.index, self.root) if resume and self.index.exists() else None
+        if kept is not None:
+            self.scenes = kept
+            self.refresh()
+        else:
+            self.scenes = list_scenes(self.root)
+            self._write(self.scenes, mode="w")
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def _write(self, paths: list[Path], mode: str) -> None:
+        self.index.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.index, mode) as f:
+            f.writelines(p.name + "\n" for p in paths)
+            f.flush()
+            os.fsync(f.fileno())
+
+    def refresh(self) -> int:
+        """Append the scenes that appeared since the last look; returns how many."""
+        known = {p.name for p in self.scenes}
+        new = sorted((p.parent for p in self.root.glob("*/data.npz") if p.parent.name not in known),
+                     key=lambda p: p.name)
+        if new:
+            self._write(new, mode="a")
+            self.scenes.extend(new)
+        return len(new)
+
+
+def read_scene_index(index: str | Path, root: str | Path, count: int | None = None) -> list[Path] | None:
+    """The first ``count`` (default: all) scenes named in a :class:`GrowingScenes` index, as paths under ``root``;
+    None when one of them has no ``data.npz`` there."""
+    root = Path(root)
+    names = Path(index).read_text().split()
+    if count is not None:
+        if len(names) < count:
+            raise ValueError(f"{index} names {len(names)} scenes, fewer than the {count} asked for")
+        names = names[:count]
+    paths = [root / n for n in names]
+    if not all((p / "data.npz").exists() for p in paths):
+        return None
+    return paths
 
 
 @dataclass
@@ -231,11 +291,17 @@ class SceneCache:
 MICRO_OFFSET = 1 << 20  # keeps a micro-batch's seed apart from every sample slot's (slots stay below it)
 
 
-def draw_batch(cache: SceneCache, spec: SampleSpec, batch: int, seed: int, step: int, rank: int = 0, micro: int = 0):
+def draw_batch(cache: SceneCache, spec: SampleSpec, batch: int, seed: int, step: int, rank: int = 0, micro: int = 0,
+               n_scenes: int | None = None):
     """A batch of ``batch`` samples with a common K (so they stack): dict of (B, ...) numpy arrays.
 
-    A pure function of ``(seed, step, rank, micro)``; ``micro`` numbers the micro-batches of one optimiser step
-    when gradients are accumulated (micro-batch 0 is the batch drawn without accumulation)."""
+    A pure function of ``(seed, step, rank, micro)`` and the scenes it draws from: the first ``n_scenes`` of the
+    cache (default: all of them; a growing dataset passes the count of each step). ``micro`` numbers the
+    micro-batches of one optimiser step when gradients are accumulated (micro-batch 0 is the batch drawn without
+    accumulation)."""
+    n = len(cache) if n_scenes is None else int(n_scenes)
+    if not 1 <= n <= len(cache):
+        raise ValueError(f"draw_batch: {n} scenes asked for, the cache holds {len(cache)}")
     if batch >= MICRO_OFFSET:
         raise ValueError(f"batch {batch} is too large (at most {MICRO_OFFSET - 1})")
     key = [seed, step, rank] if micro == 0 else [seed, step, rank, MICRO_OFFSET + micro]
@@ -245,6 +311,6 @@ def draw_batch(cache: SceneCache, spec: SampleSpec, batch: int, seed: int, step:
     samples = []
     for slot in range(batch):
         srng = np.random.default_rng([seed, step, rank, slot] + ([micro] if micro else []))
-        scene = cache.get(int(srng.integers(len(cache))))
+        scene = cache.get(int(srng.integers(n)))
         samples.append(draw_sample(scene, fixed, srng))
     return {key: np.stack([s[key] for s in samples]) for key in samples[0]}

@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from networks.config import SDMUniPSConfig, get_config
-from networks.data import SceneCache, draw_batch, list_scenes, load_scene
+from networks.data import GrowingScenes, SceneCache, draw_batch, list_scenes, load_scene, read_scene_index
 from networks.inference import check_device
 from networks.preprocess import normalize_images
 from networks.trainconfig import TrainConfig, add_arguments, check_config, config_from_args
@@ -40,9 +40,12 @@ from scenes.atomic import atomic_path
 # ------------------------------------------------------------------------------------------ helpers
 
 
-def lr_factor(step: int, tc: TrainConfig) -> float:
-    """Warm-up then step decay: the multiplier of ``lr`` at ``step``."""
+def lr_factor(step: int, tc: TrainConfig, rewarm_from: int | None = None) -> float:
+    """Warm-up then step decay: the multiplier of ``lr`` at ``step``. A run continued from weights alone
+    (``--resume-from``, a fresh optimiser) warms up again over ``warmup_steps`` from step ``rewarm_from``."""
     warm = min(1.0, (step + 1) / max(tc.warmup_steps, 1))
+    if rewarm_from is not None:
+        warm = min(warm, max(step - rewarm_from + 1, 0) / max(tc.warmup_steps, 1))
     return warm * tc.decay_factor ** (step // max(tc.decay_every, 1))
 
 
@@ -176,52 +179,78 @@ def _plain(obj):
 
 
 _worker_cache: SceneCache | None = None
+_worker_index: tuple[Path, Path] | None = None  # (scene index file, data folder) of a growing dataset
 
 
-def _worker_init(scenes: list[Path]) -> None:
-    global _worker_cache
+def _worker_init(scenes: list[Path], index: Path | None = None, root: Path | None = None) -> None:
+    global _worker_cache, _worker_index
     import cv2
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the main process handles Ctrl-C and stops the pool
     cv2.setNumThreads(1)
-    _worker_cache = SceneCache(scenes)
+    _worker_cache = SceneCache(list(scenes))
+    _worker_index = None if index is None else (Path(index), Path(root))
 
 
 def _step_batches(cache: SceneCache, sample, batch: int, accumulate: int, seed: int, rank: int,
-                  step: int) -> list[dict[str, np.ndarray]]:
-    """The ``accumulate`` micro-batches of one optimiser step."""
-    return [draw_batch(cache, sample, batch, seed, step, rank, micro) for micro in range(accumulate)]
+                  step: int, n_scenes: int | None = None) -> list[dict[str, np.ndarray]]:
+    """The ``accumulate`` micro-batches of one optimiser step, drawn from the first ``n_scenes`` scenes."""
+    grow = {} if n_scenes is None else {"n_scenes": n_scenes}  # None: every scene of the cache
+    return [draw_batch(cache, sample, batch, seed, step, rank, micro, **grow) for micro in range(accumulate)]
 
 
-def _worker_batch(sample, batch: int, accumulate: int, seed: int, rank: int, step: int) -> list[dict[str, np.ndarray]]:
+def _worker_batch(sample, batch: int, accumulate: int, seed: int, rank: int, step: int,
+                  n_scenes: int | None = None) -> list[dict[str, np.ndarray]]:
     assert _worker_cache is not None
-    return _step_batches(_worker_cache, sample, batch, accumulate, seed, rank, step)
+    if n_scenes is not None and n_scenes > len(_worker_cache.scenes):
+        # the dataset grew: the main process wrote the new scene order to the index before asking for this step
+        assert _worker_index is not None
+        paths = read_scene_index(_worker_index[0], _worker_index[1], n_scenes)
+        if paths is None:
+            raise RuntimeError(f"a scene named in {_worker_index[0]} has disappeared")
+        _worker_cache.scenes = paths  # the first scenes are the same ones: cached entries stay valid
+    return _step_batches(_worker_cache, sample, batch, accumulate, seed, rank, step, n_scenes)
 
 
-def _batches(cache: SceneCache, scenes: list[Path], tc: TrainConfig, start: int, rank: int):
+def _batches(cache: SceneCache, scenes: GrowingScenes, tc: TrainConfig, start: int, rank: int, on_growth=None):
     """Yield ``(step, micro-batches)`` for steps ``start .. tc.steps - 1`` in order: drawn here, or by ``tc.workers``
-    spawned processes at most ``2 * workers`` steps ahead (the same batches: each is a pure function of its step)."""
+    spawned processes at most ``2 * workers`` steps ahead (the same batches: each is a pure function of its step and
+    of the number of scenes it draws from). With ``tc.rescan_every_s`` the data folder is re-listed that often and
+    the steps asked for after it draw from the grown set; ``on_growth(step, count)`` is told of each growth."""
+    last_scan = time.perf_counter()
+
+    def count(step: int) -> int | None:
+        nonlocal last_scan
+        if tc.rescan_every_s <= 0:
+            return None  # a fixed folder: every scene
+        if time.perf_counter() - last_scan >= tc.rescan_every_s:
+            last_scan = time.perf_counter()
+            if scenes.refresh() and on_growth is not None:
+                on_growth(step, len(scenes))
+        return len(scenes)
+
     if tc.workers <= 0:
         for step in range(start, tc.steps):
-            yield step, _step_batches(cache, tc.sample, tc.batch, tc.accumulate, tc.seed, rank, step)
+            yield step, _step_batches(cache, tc.sample, tc.batch, tc.accumulate, tc.seed, rank, step, count(step))
         return
     import collections
     import functools
     import multiprocessing
 
     work = functools.partial(_worker_batch, tc.sample, tc.batch, tc.accumulate, tc.seed, rank)
-    with multiprocessing.get_context("spawn").Pool(tc.workers, _worker_init, (scenes,)) as pool:
+    init = (list(scenes.scenes), scenes.index, scenes.root)
+    with multiprocessing.get_context("spawn").Pool(tc.workers, _worker_init, init) as pool:
         pending: collections.deque = collections.deque()  # (step, async result), oldest first
         upcoming = iter(range(start, tc.steps))
         for step in upcoming:
-            pending.append((step, pool.apply_async(work, (step,))))
+            pending.append((step, pool.apply_async(work, (step, count(step)))))
             if len(pending) >= 2 * tc.workers:
                 break
         while pending:
             step, result = pending.popleft()
             nxt = next(upcoming, None)
             if nxt is not None:
-                pending.append((nxt, pool.apply_async(work, (nxt,))))
+                pending.append((nxt, pool.apply_async(work, (nxt, count(nxt)))))
             yield step, result.get()
 
 
@@ -261,11 +290,16 @@ def check_run_folder(out: Path, resume: bool, overwrite: bool) -> None:
 
 
 def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progress: bool = True,
-          overwrite: bool = False) -> dict:
+          overwrite: bool = False, resume_from: str | None = None) -> dict:
     """Run (or continue) training. Returns the final record (step, best, last validation; ``"stopped": True``
     when SIGINT / SIGTERM ended it early, after saving the checkpoint). A fresh run (not ``resume``) refuses an
-    ``out`` folder that holds an earlier run unless ``overwrite``."""
-    from networks.checkpoint import load_model, save_weights
+    ``out`` folder that holds an earlier run unless ``overwrite``.
+
+    ``resume_from``: continue a run from weights it wrote (``last.safetensors``, float16 copies too) when its
+    checkpoint is gone, e.g. on a fresh machine: the step, the best validation score and the wall time come from
+    the file's card; the optimiser starts afresh and the learning rate warms up again over ``warmup_steps``. Not
+    bit-for-bit (that needs ``resume`` and ``checkpoint.pt``)."""
+    from networks.checkpoint import load_model, read_metadata, save_weights
     from networks.model import SDMUniPS
 
     check_config(tc)
@@ -286,13 +320,24 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
     if tc.threads:
         torch.set_num_threads(tc.threads)
     out = Path(tc.out)
-    scenes = list_scenes(tc.data)
+    if resume and resume_from:
+        raise ValueError("--resume and --resume-from exclude each other")
+    if init and resume_from:
+        raise ValueError("--init and --resume-from exclude each other")
+    list_scenes(tc.data)  # fails here on a folder without scenes
     val_scenes = list_scenes(tc.val_data) if tc.val_data else []
     out.mkdir(parents=True, exist_ok=True)  # after the data checks: a bad --data leaves no empty run folder
-    cache = SceneCache(scenes)
+    scenes = GrowingScenes(tc.data, out / ("scenes.txt" if rank == 0 else f"scenes.rank{rank}.txt"), resume=resume)
+    cache = SceneCache(scenes.scenes)  # the same list: it grows with the folder (tc.rescan_every_s)
 
     torch.manual_seed(tc.seed)
     config = get_config(tc.preset, tc.target)
+    from_card: dict = {}
+    if resume_from:
+        init = resume_from
+        from_card = read_metadata(resume_from)[1]
+        if "steps" not in from_card:
+            raise ValueError(f"--resume-from {resume_from}: its card has no step count (not written by a training run)")
     src, init_config = (load_model(init, device="cpu")[:2]) if init else (None, None)
     overrides = {"pixel_samples": tc.sample.pixel_samples}  # inference uses the sample-set size it was trained with
     # canonical resolution and dropout: the command line's, else those of the weights we start from, else the preset's
@@ -317,10 +362,21 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
         missing = model.load_state_dict(src.state_dict(), strict=False)
         if rank == 0:
             print(f"initialised from {init} (missing: {len(missing.missing_keys)} keys)", file=sys.stderr)
+    rewarm = {"from": None}  # the step a --resume-from run warms up again from (kept in the checkpoint)
     opt = torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, tc))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, tc, rewarm["from"]))
     start, best, wall_before = 0, float("inf"), 0.0
     ckpt_path = out / "checkpoint.pt"
+    if resume_from:
+        start = int(from_card["steps"])
+        best = float(from_card.get("best", float("inf")))
+        wall_before = float(from_card.get("wall_time_s", 0.0))
+        rewarm["from"] = start
+        sched.last_epoch = start
+        for group in opt.param_groups:
+            group["lr"] = tc.lr * lr_factor(start, tc, start)
+        if rank == 0:
+            print(f"continuing from {resume_from} at step {start} (fresh optimiser, warm-up again)", file=sys.stderr)
     if resume:
         if not ckpt_path.exists():
             raise ValueError(f"--resume: {ckpt_path} does not exist")
@@ -329,7 +385,8 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
             config = SDMUniPSConfig.from_dict(ckpt["model_config"])
             model = SDMUniPS(config).to(device)
             opt = torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
-            sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, tc))
+            sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, tc, rewarm["from"]))
+        rewarm["from"] = ckpt.get("rewarm_from")
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         sched.load_state_dict(ckpt["scheduler"])
@@ -337,7 +394,7 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
         sched.base_lrs = [tc.lr for _ in sched.base_lrs]
         for group in opt.param_groups:
             group["initial_lr"] = tc.lr
-            group["lr"] = tc.lr * lr_factor(sched.last_epoch, tc)
+            group["lr"] = tc.lr * lr_factor(sched.last_epoch, tc, rewarm["from"])
         start, best, wall_before = int(ckpt["step"]), float(ckpt["best"]), float(ckpt["wall_s"])
     net = model
     if ddp:
@@ -360,13 +417,14 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
             "preset": tc.preset, "target": tc.target, "steps": step, "wall_time_s": round(wall, 1),
             "data": str(tc.data), "train_scenes": len(scenes), "val_data": str(tc.val_data),
             "validation": val or {}, "train_config": _plain(dataclasses.asdict(tc)), "world_size": world,
+            "best": best if math.isfinite(best) else None, "rewarm_from": rewarm["from"],
         }
 
     def save_checkpoint(step: int, wall: float) -> None:
         _save_atomic(
             {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
              "step": step, "best": best, "wall_s": wall, "train_config": _plain(dataclasses.asdict(tc)),
-             "model_config": _plain(config.to_dict())},
+             "model_config": _plain(config.to_dict()), "rewarm_from": rewarm["from"]},
             ckpt_path,
         )
 
@@ -383,7 +441,12 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
     running = []
     step = start
     stopped = False
-    batches = _batches(cache, scenes, tc, start, rank)
+    def grown(first_step: int, count: int) -> None:
+        record({"event": "data", "step": first_step, "scenes": count})
+
+    if rank == 0 and (resume_from or tc.rescan_every_s > 0):
+        record({"event": "data", "step": start, "scenes": len(scenes)})
+    batches = _batches(cache, scenes, tc, start, rank, on_growth=grown if rank == 0 else None)
     clamp = not tc.brdf_loss_before_relu
     with _stop_requests(enabled=not ddp) as stop:
         for step, micro_batches in batches:
@@ -459,10 +522,13 @@ def train(tc: TrainConfig, resume: bool = False, init: str | None = None, progre
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m networks.train", description=__doc__.split("\n\n")[0])
     add_arguments(p)
+    p.add_argument("--resume-from", metavar="WEIGHTS", help="continue a run from weights it wrote (last.safetensors, "
+                   "fp16 copies too) when its checkpoint.pt is gone: step, best score and wall time from their card, "
+                   "a fresh optimiser warmed up again over --warmup-steps (not bit-for-bit)")
     args = p.parse_args(argv)
     try:
         result = train(config_from_args(args), resume=args.resume, init=args.init, progress=not args.quiet,
-                       overwrite=args.overwrite)
+                       overwrite=args.overwrite, resume_from=args.resume_from)
     except ValueError as exc:
         print(f"networks.train: error: {exc}", file=sys.stderr)
         return 2

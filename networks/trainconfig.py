@@ -79,6 +79,10 @@ class TrainConfig:
     workers: int = 0
     """Processes that draw the next batches ahead of the optimiser (0 = draw them in the training loop). The
     batches are the same either way (each is a pure function of its step); use them when a GPU waits for data."""
+    rescan_every_s: float = 0.0
+    """Re-list --data every this many seconds and draw from the scenes that appeared since, for a folder that a
+    generator is still rendering into (0 = list it once). New scenes join at the end of the run's scene order
+    (OUT/scenes.txt), and each growth is logged (event=data: the first step that draws from it, the scene count)."""
     save_all_ranks: bool = False
     """Every rank writes final_rank<r>.safetensors (used by the DDP test)."""
 
@@ -135,7 +139,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                  "threads", "workers", "val_scenes", "resolution", "min_images", "max_images", "pixel_samples"):
         flag(name, type=int)
     for name in ("dropout", "lr", "weight_decay", "decay_factor", "grad_clip", "val_every_s", "checkpoint_every_s",
-                 "fresh_combination_prob", "drop_mask_prob", "min_crop"):
+                 "rescan_every_s", "fresh_combination_prob", "drop_mask_prob", "min_crop"):
         flag(name, type=float)
     flag("brdf_weights", type=_three_floats, metavar="B,R,M",
          help=docs.get("brdf_weights", "") + " (default: 1,1,1)")
@@ -173,7 +177,7 @@ def check_config(tc: TrainConfig) -> None:
             raise ValueError(f"{flag(name)} must be a probability in [0, 1], got {value}")
     if not 0.0 < s.min_crop <= 1.0:
         raise ValueError(f"--min-crop must be a fraction in (0, 1], got {s.min_crop}")
-    for name in ("lr", "weight_decay", "grad_clip", "decay_factor"):
+    for name in ("lr", "weight_decay", "grad_clip", "decay_factor", "rescan_every_s"):
         value = getattr(tc, name)
         if not math.isfinite(value) or value < 0:
             raise ValueError(f"{flag(name)} must be a finite number >= 0, got {value}")
