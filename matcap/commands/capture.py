@@ -58,6 +58,10 @@ def register(sub) -> None:
     g.add_argument("--no-refine", dest="refine", action="store_false",
                    help="keep the networks' maps as they are (no lights.json / fit.json)")
     add_fit_options(p)
+    p.add_argument("--ball", metavar="auto|MASK",
+                   help="a mirror ball (chrome sphere) is in the photos: take the lights from its highlights, found "
+                        "by itself ('auto') or inside a mask image of the ball; the ball is kept out of the object's "
+                        "mask and calibration.png shows what was found")
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
     p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")
@@ -125,7 +129,7 @@ def run(args) -> int:
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
         constants=constants, max_side=args.max_side, relight=relight, export=export, refine=do_refine,
-        refine_settings=settings, lights=args.lights,
+        refine_settings=settings, lights=args.lights, ball=args.ball,
     )
     t = maps.meta["timings"]
     print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "
