@@ -58,6 +58,8 @@ CLIP_TOLERANCE = 1e-3
 #: Pixels of margin around the ball's disc in :meth:`Calibration.ball_mask`, as a fraction of the radius.
 MASK_MARGIN = 0.06
 RAYS = 180
+#: Circles are searched on copies of the photos shrunk to this longer side (then refined at full size).
+WORK_SIDE = 1024
 #: The diagnostic picture written beside the light file.
 DIAGNOSTIC = "calibration.png"
 
@@ -135,8 +137,21 @@ class Calibration:
 
 
 def _luminance(img: np.ndarray) -> np.ndarray:
-    """(H, W) float64 mean of RGB."""
-    return np.asarray(img, dtype=np.float64).mean(axis=2)
+    """(H, W) float32 mean of RGB."""
+    import cv2
+
+    arr = np.ascontiguousarray(img, dtype=np.float32)
+    out = cv2.transform(arr, np.full((1, 3), 1.0 / 3.0, dtype=np.float32))  # (H, W) (or (H, W, 1))
+    return out.reshape(arr.shape[:2])
+
+
+def _box(circle, size: tuple[int, int], grow: float = 1.1, pad: int = 4) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1): the pixels within ``grow`` x the circle's radius (+ ``pad``), clipped to the image."""
+    cx, cy, r = circle
+    m = grow * r + pad
+    h, w = size
+    return (max(0, int(math.floor(cy - m))), min(h, int(math.ceil(cy + m)) + 1),
+            max(0, int(math.floor(cx - m))), min(w, int(math.ceil(cx + m)) + 1))
 
 
 def _check_images(images: Sequence[np.ndarray], names: Sequence[str]) -> tuple[int, int]:
@@ -180,19 +195,23 @@ def _fit_circle(x: np.ndarray, y: np.ndarray, start: tuple[float, float, float] 
     return tuple(float(v) for v in res.x)
 
 
-def _structure_images(lums: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def _structure_images(lums: Sequence[np.ndarray], log: bool = True,
+                      median: bool = True) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Two (H, W) float32 images in which the ball's outline stays put: the log of the photos' mean luminance
     (every edge visible, for finding circles) and the photos' median luminance (linear, without the moving
     highlights and shadows: where a pixel-averaged edge's steepest point is the edge itself, for sub-pixel
     refinement; the log would move it toward the dark side), both lightly smoothed."""
     import cv2
 
-    mean = np.mean(lums, axis=0)
-    positive = mean[mean > 0]
-    eps = max(float(np.percentile(positive, 5)) if positive.size else 1e-6, 1e-6)
-    log = np.log(mean + eps).astype(np.float32)
-    median = np.median(lums, axis=0).astype(np.float32)
-    return cv2.GaussianBlur(log, (0, 0), 1.0), cv2.GaussianBlur(median, (0, 0), 0.7)
+    out_log = out_median = None
+    if log:
+        mean = np.mean(lums, axis=0, dtype=np.float32)
+        positive = mean[mean > 0]
+        eps = max(float(np.percentile(positive, 5)) if positive.size else 1e-6, 1e-6)
+        out_log = cv2.GaussianBlur(np.log(mean + eps).astype(np.float32), (0, 0), 1.0)
+    if median:
+        out_median = cv2.GaussianBlur(np.median(lums, axis=0).astype(np.float32), (0, 0), 0.7)
+    return out_log, out_median
 
 
 def _refine_circle(log: np.ndarray, start: tuple[float, float, float], rays: int = RAYS,
@@ -251,12 +270,13 @@ def _disc(shape: tuple[int, int], circle, scale: float = 1.0) -> np.ndarray:
 
 def _highlight_sharpness(lums: Sequence[np.ndarray], circle) -> float:
     """Median over photos of log(peak / 90th percentile) inside the circle (a mirror ball: large)."""
-    disc = _disc(lums[0].shape, circle, RIM)
+    y0, y1, x0, x1 = _box(circle, lums[0].shape)
+    disc = _disc((y1 - y0, x1 - x0), (circle[0] - x0, circle[1] - y0, circle[2]), RIM)
     if disc.sum() < 20:
         return 0.0
     vals = []
     for lum in lums:
-        v = lum[disc]
+        v = lum[y0:y1, x0:x1][disc]
         p90 = float(np.percentile(v, 90))
         vals.append(math.log((float(v.max()) + 1e-9) / (p90 + 1e-9)))
     return float(np.median(vals))
@@ -268,8 +288,14 @@ def find_ball(images: Sequence[np.ndarray]) -> tuple[tuple[float, float, float],
     Raises :class:`MatcapError` when no circle has a clear outline and a highlight in every photo."""
     import cv2
 
-    lums = [_luminance(im) for im in images]
-    log, median = _structure_images(lums)
+    size = images[0].shape[:2]
+    scale = min(1.0, WORK_SIDE / max(size))
+    if scale < 1.0:  # find circles on smaller copies; the chosen one is refined at full size below
+        wh = (max(1, round(size[1] * scale)), max(1, round(size[0] * scale)))
+        lums = [cv2.resize(_luminance(im), wh, interpolation=cv2.INTER_AREA) for im in images]
+    else:
+        lums = [_luminance(im) for im in images]
+    log, _ = _structure_images(lums, median=False)
     h, w = log.shape
     lo, hi = np.percentile(log, [1, 99.5])
     u8 = (np.clip((log - lo) / max(hi - lo, 1e-6), 0, 1) * 255).astype(np.uint8)
@@ -292,10 +318,18 @@ def find_ball(images: Sequence[np.ndarray]) -> tuple[tuple[float, float, float],
         raise MatcapError("no mirror ball found in the photos (no steady circular outline with a highlight in "
                           "each photo); give its disc as a mask with --ball-mask")
     tried.sort(key=lambda t: -t[0])
-    cx, cy, r, support, _ = _refine_circle(median, best, widths=("mid", "narrow"))
-    if support >= 0.5 and abs(r - best[2]) < 0.05 * best[2] + 1 and math.hypot(cx - best[0], cy - best[1]) < 2:
-        best = (cx, cy, r)
-    info = {"candidates": len(cands), "support": tried[0][2], "sharpness": tried[0][3], "median_support": support}
+    # back to full-size pixel centres, then the sub-pixel edge on the photos' median around the circle
+    best = ((best[0] + 0.5) / scale - 0.5, (best[1] + 0.5) / scale - 0.5, best[2] / scale)
+    y0, y1, x0, x1 = _box(best, size, grow=1.3, pad=8)
+    crops = [_luminance(im[y0:y1, x0:x1]) for im in images]
+    _, median = _structure_images(crops, log=False)
+    local = (best[0] - x0, best[1] - y0, best[2])
+    cx, cy, r, support, _ = _refine_circle(median, local, widths=("mid", "narrow"))
+    if support >= 0.5 and abs(r - best[2]) < 0.05 * best[2] + 1 + 1 / scale and \
+            math.hypot(cx - local[0], cy - local[1]) < 2 + 1 / scale:
+        best = (cx + x0, cy + y0, r)
+    info = {"candidates": len(cands), "support": tried[0][2], "sharpness": tried[0][3], "median_support": support,
+            "work_scale": scale}
     return best, info
 
 
@@ -423,8 +457,8 @@ def _clip_level(img: np.ndarray) -> float | None:
     top = float(img.max())
     if top <= 0:
         return None
-    count = int(np.count_nonzero(img.max(axis=2) >= top * (1 - CLIP_TOLERANCE)))
-    return top if count >= 3 else None
+    count = int(np.count_nonzero(img >= top * (1 - CLIP_TOLERANCE)))  # channel values: at least 2 pixels' worth
+    return top if count >= 6 else None
 
 
 def _check_clipped(clipped_px: int, r: float, name: str) -> None:
@@ -444,17 +478,19 @@ def locate_highlight(image: np.ndarray, circle, name: str, focal_px: float | Non
     ``spread_deg``. Raises :class:`MatcapError` naming ``name`` for no highlight or a large clipped blob."""
     import cv2
 
-    img = np.asarray(image, dtype=np.float64)
-    size = img.shape[:2]
+    full = np.asarray(image)
+    size = full.shape[:2]
+    level = _clip_level(full)  # the photo's own clipping level
+    y0, y1, x0, x1 = _box(circle, size, grow=1.0)
+    img = full[y0:y1, x0:x1].astype(np.float64)  # the ball's box: pixel (x, y) here is (x + x0, y + y0)
     lum = img.mean(axis=2)
-    disc = _disc(size, circle, RIM)
+    disc = _disc(img.shape[:2], (circle[0] - x0, circle[1] - y0, circle[2]), RIM)
     vals = lum[disc]
     if vals.size < 20:
         raise MatcapError(f"{name}: the ball's circle holds only {vals.size} pixels")
     base = float(np.median(vals))
     p90 = float(np.percentile(vals, 90))
     peak = float(vals.max())
-    level = _clip_level(img)
     r = circle[2]
     if level is not None:  # a photo clipped over much of the ball (checked before "no highlight": it looks flat)
         clipped_disc = int(np.count_nonzero(disc & (img.max(axis=2) >= level * (1 - CLIP_TOLERANCE))))
@@ -476,7 +512,7 @@ def locate_highlight(image: np.ndarray, circle, name: str, focal_px: float | Non
     bg = np.median(img[ring], axis=0) if ring.sum() >= 8 else np.median(img[disc], axis=0)
     yy, xx = np.nonzero(grown)
     wgt = np.clip(lum[yy, xx] - float(bg.mean()), 0, None)
-    dirs, hit = reflect(xx, yy, circle, size, focal_px)
+    dirs, hit = reflect(xx + x0, yy + y0, circle, size, focal_px)
     wgt = np.where(hit, wgt, 0.0)
     if wgt.sum() <= 0:
         raise MatcapError(f"{name}: the highlight lies on the ball's rim; it cannot be located")
@@ -596,8 +632,9 @@ def diagnostic_image(cal: Calibration, images: Sequence[np.ndarray], max_scale: 
         px, py = pt(x, y)
         cv2.line(canvas, (px - arm * 16, py), (px + arm * 16, py), (255, 40, 40), 1, cv2.LINE_AA, 4)
         cv2.line(canvas, (px, py - arm * 16), (px, py + arm * 16), (255, 40, 40), 1, cv2.LINE_AA, 4)
-        cv2.putText(canvas, str(k), (px // 16 + arm + 1, py // 16 - arm - 1), cv2.FONT_HERSHEY_SIMPLEX, font,
-                    (255, 220, 60), 1, cv2.LINE_AA)
+        org = (px // 16 + arm + 1, py // 16 - arm - 1)
+        cv2.putText(canvas, str(k), org, cv2.FONT_HERSHEY_SIMPLEX, font, (0, 0, 0), 3, cv2.LINE_AA)  # outline
+        cv2.putText(canvas, str(k), org, cv2.FONT_HERSHEY_SIMPLEX, font, (255, 220, 60), 1, cv2.LINE_AA)
     return canvas.astype(np.float32) / 255.0
 
 
