@@ -18,15 +18,18 @@ of a pixel's centre, row 0 at the top, so a pixel's "up" offset is ``-(row - cy)
   the slight ellipse of an off-axis sphere). Each pixel's ray is intersected with the ball and ``v`` is that
   pixel's direction back to the camera.
 
-A photo's light direction is the intensity-weighted mean of the reflected directions ``d`` over its highlight
-(the connected blob around the brightest pixel of the ball, above half of the peak over the ball's median),
-normalised: the centre of a round highlight, sub-pixel, and the centre of a clipped one. A photo whose ball holds
-no highlight (peak not clearly above the ball's own reflection of the room) or a highlight clipped into a large
-blob is refused with one line naming the photo.
+A photo's light direction is the mean of the reflected directions ``d`` over its highlight, each pixel weighted
+by its brightness above the local background, normalised. The highlight is the connected blob around the
+brightest pixel of the ball (above half of the peak over the ball's median) grown by its tails (4 % of the
+radius, at least 2 px); the background is the median of a ring around it. Weighting pixel-averaged values
+keeps the centre of a highlight smaller than a pixel, and a clipped highlight gives the centre of its blob. A
+photo whose ball holds no highlight (peak not 3x the ball's 90th percentile) or a highlight clipped into a large
+blob (over 20 deg across in reflected directions) is refused with one line naming the photo.
 
 Relative intensities: a mirror ball reflects a distant light's whole irradiance (times the ball's reflectance)
 into its highlight, so the highlight's energy above the ball's background, summed over its pixels, is
-proportional to the light's irradiance. That holds only while the highlight is not clipped: when any photo's
+proportional to the light's irradiance (summed over the blob grown by 15 % of the radius, above the median of a
+ring around that). That holds only while the highlight is not clipped: when any photo's
 highlight reaches the photo's clipping level, intensities are left unknown (``None``; the fit estimates them).
 Known intensities are scaled to a mean of 1 over all photos and channels (relative, colour kept).
 
@@ -57,6 +60,7 @@ MAX_CLIPPED_DEG = 20.0
 CLIP_TOLERANCE = 1e-3
 #: Pixels of margin around the ball's disc in :meth:`Calibration.ball_mask`, as a fraction of the radius.
 MASK_MARGIN = 0.06
+#: Rays along which the ball's outline is located.
 RAYS = 180
 #: Circles are searched on copies of the photos shrunk to this longer side (then refined at full size).
 WORK_SIDE = 1024
@@ -76,7 +80,7 @@ class Calibration:
     quality: per photo a dict: ``peak`` (linear), ``blob_px``, ``clipped_px``, ``spread_deg`` (weighted RMS angle
         of the highlight's reflected directions about the result), ``note`` (empty or a warning).
     size: (H, W) of the photos.
-    camera: ``"orthographic"`` or ``"perspective f=<focal_px>"``.
+    camera: ``"orthographic"`` or ``"perspective f=<focal_px> px, principal point at the image centre"``.
     circle_source: ``"auto"`` (found in the photos) or ``"mask"`` (from ``ball_mask``).
     notes: remarks about the whole calibration (e.g. why intensities are unknown).
     """
@@ -178,7 +182,7 @@ def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _fit_circle(x: np.ndarray, y: np.ndarray, start: tuple[float, float, float] | None = None):
-    """Robust geometric circle fit (soft-L1 loss, 1 px scale) of points (x, y); returns (cx, cy, r)."""
+    """Robust geometric circle fit (soft-L1 loss, 0.7 px scale) of points (x, y); returns (cx, cy, r)."""
     from scipy.optimize import least_squares
 
     if start is None:  # algebraic (Kasa) fit
@@ -542,7 +546,7 @@ def calibrate(images: Sequence[np.ndarray], ball_mask: np.ndarray | None = None,
               names: Sequence[str] | None = None) -> Calibration:
     """Light directions from a mirror ball in K photos (one light each, camera and ball fixed).
 
-    images: K >= 2 arrays (H, W, 3) float linear RGB. ball_mask: (H, W) bool disc of the ball (default: found
+    images: K >= 2 arrays (H, W, 3) float32 linear RGB (any scale). ball_mask: (H, W) bool disc of the ball (default: found
     automatically). focal_px: focal length in pixels for a perspective camera (principal point at the image
     centre); default orthographic (see the module docstring for both models). names: K photo names for messages
     and ``lights.json`` (default ``photo 0``, ...).
@@ -687,6 +691,11 @@ def calibrate_folder(photos: str | os.PathLike, out: str | os.PathLike, ball_mas
     if photos.is_dir() and out.resolve().parent == photos.resolve():
         raise MatcapError(f"--out {out}: inside the photos folder, where {DIAGNOSTIC} would be taken for a photo; "
                           "write it elsewhere")
+    parent = out.absolute().parent
+    while not parent.exists() and parent != parent.parent:  # the first folder that exists must take a new one
+        parent = parent.parent
+    if not (parent.is_dir() and os.access(parent, os.W_OK | os.X_OK)):
+        raise MatcapError(f"--out {out}: cannot write in {parent}")
     if not overwrite:
         for p in (out, out.parent / DIAGNOSTIC):
             if p.exists():

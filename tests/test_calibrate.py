@@ -142,7 +142,7 @@ def test_perspective_model():
         assert _angles(d, cal.directions[k:k + 1])[0] < 1e-3
 
 
-def test_cli_writes_rig_and_diagnostic(photo_folder, ball_render, tmp_path):
+def test_cli_writes_rig_and_diagnostic(photo_folder, ball_render, tmp_path, capsys):
     from matcap.cli import main
     from matcap.imageio import read_image
     from matcap.refine.lightfile import read_lights
@@ -171,7 +171,9 @@ def test_cli_writes_rig_and_diagnostic(photo_folder, ball_render, tmp_path):
     assert red.sum() > 12 and (np.hypot(rx - cx, ry - cy) < r).all()
     # refused without --overwrite, accepted with it
     assert main(["calibrate", str(photo_folder), "--out", str(out)]) == 2
-    assert main(["calibrate", str(photo_folder), "--out", str(out), "--overwrite"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(photo_folder), "--out", str(out), "--overwrite", "--quiet"]) == 0
+    assert capsys.readouterr().out == ""
 
 
 def _one_line_exit_2(capsys, argv, *words):

@@ -23,6 +23,7 @@ def register(sub) -> None:
     cg.add_argument("--linear", action="store_true", default=False, help="take 8-bit images as linear")
     cg.add_argument("--srgb", dest="linear", action="store_false", help="decode 8-bit images from sRGB (default)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing light file and calibration.png")
+    p.add_argument("--quiet", action="store_true", help="print nothing on success")
     p.set_defaults(func=run)
 
 
@@ -35,6 +36,8 @@ def run(args) -> int:
 
     cal = calibrate_folder(args.photos, args.out, ball_mask=args.ball_mask, focal_px=args.focal_px,
                            linear=args.linear, overwrite=args.overwrite)
+    if args.quiet:
+        return 0
     cx, cy, r = cal.circle
     spread = np.array([q["spread_deg"] for q in cal.quality])
     inten = "relative intensities" if cal.intensities is not None else "intensities unknown (clipped highlights)"
