@@ -9,8 +9,10 @@
     (3 free parameters fitted to the answer) still leaves this much, so `lights.txt` was not made from these
     highlight centres with an orthographic ball.
 (b) The rendered example scene (Spot and a chrome ball, 16 lights, `renderers.ballscene.example_scene`): rendered
-    as float (no clipping) and calibrated with the ball found automatically; then the bundled `examples/ball`
-    photos (16-bit, clipped highlights) against their `lights.json`.
+    as float (no clipping) and calibrated with the ball found automatically; the same scene through a pinhole
+    camera (focal 400 px at 256 px, 4 units away) calibrated with `focal_px` (and, for contrast, as if
+    orthographic); then the bundled `examples/ball` photos (16-bit, clipped highlights) against their
+    `lights.json`.
 Prints a Markdown table of median / max angular error in degrees and the time of each calibration.
 """
 from __future__ import annotations
@@ -104,6 +106,14 @@ def rendered(size: int, spp: int, example: Path, tmp: Path) -> None:
         inten = f"; relative intensity error max {100 * np.abs(est / true - 1).max():.0f} %"
     row(f"render {size}px float, {spp} spp, ball found", angles(cal.directions, r.directions), secs,
         f"circle off by {circle_err:.2f} px{inten}; render {t_render:.0f} s")
+    # the same scene through a pinhole 4 units away (focal 400 px: 35 deg across), calibrated with --focal-px
+    scene.focal_px, scene.camera_distance = 400.0, 4.0
+    r = render(scene, size=size, spp=spp, seed=0)
+    for focal, label in ((400.0, "perspective model, f = 400 px"), (None, "orthographic model (wrong here)")):
+        t = time.perf_counter()
+        cal = calibrate(list(r.images), focal_px=focal)
+        row(f"render {size}px through a pinhole 4 units away, {label}", angles(cal.directions, r.directions),
+            time.perf_counter() - t)
     if (example / "lights.json").is_file():
         truth = json.loads((example / "lights.json").read_text())
         doc, secs = run_cli(example, tmp / "ex" / "rig.json")

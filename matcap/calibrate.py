@@ -11,12 +11,12 @@ of a pixel's centre, row 0 at the top, so a pixel's "up" offset is ``-(row - cy)
   camera, ``d = 2 (n . v) n - v``. Each pixel of the ball then covers the same solid angle of reflected directions,
   ``4 / r^2`` sr.
 * **Perspective camera** (``focal_px`` given): a pinhole at the origin with the principal point at the image centre
-  ``((W - 1) / 2, (H - 1) / 2)`` and focal length ``focal_px`` in pixels. The ball (radius 1) is where the cone
-  of rays tangent to it matches the circle: along the image's radial line through the circle, the rays to the
-  circle's near and far edges (``rho - r``, ``rho + r`` from the principal point) are the cone's edges, their
-  bisector is the ray to the ball's centre and half their angle its angular radius (so the ball's image may be
-  the slight ellipse of an off-axis sphere). Each pixel's ray is intersected with the ball and ``v`` is that
-  pixel's direction back to the camera.
+  ``((W - 1) / 2, (H - 1) / 2)`` and focal length ``focal_px`` in pixels. The ball (radius 1) is placed by the
+  cone of rays tangent to it: the rays through its outline's points (found at sub-pixel, or the mask's outline)
+  all make the same angle with the ray to its centre, so a robust fit of that small circle on the sphere of
+  directions gives the centre's direction and the angular radius (exact for the slightly elliptical image of an
+  off-axis sphere). Each pixel's ray is intersected with the ball and ``v`` is that pixel's direction back to
+  the camera.
 
 A photo's light direction is the mean of the reflected directions ``d`` over its highlight, each pixel weighted
 by its brightness above the local background, normalised. The highlight is the connected blob around the
@@ -83,6 +83,7 @@ class Calibration:
     camera: ``"orthographic"`` or ``"perspective f=<focal_px> px, principal point at the image centre"``.
     circle_source: ``"auto"`` (found in the photos) or ``"mask"`` (from ``ball_mask``).
     notes: remarks about the whole calibration (e.g. why intensities are unknown).
+    cone: perspective camera only: (unit ray to the ball's centre (3,), the ball's angular radius in radians).
     """
 
     directions: np.ndarray
@@ -96,6 +97,7 @@ class Calibration:
     focal_px: float | None = None
     circle_source: str = "auto"
     notes: list[str] = field(default_factory=list)
+    cone: tuple[np.ndarray, float] | None = None
 
     def ball_mask(self, margin: float = MASK_MARGIN) -> np.ndarray:
         """(H, W) bool: the ball's disc grown by ``margin`` x radius (at least 2 pixels), to keep the ball out of
@@ -132,7 +134,10 @@ class Calibration:
             "camera": self.camera,
             "intensity_known": self.intensities is not None,
             "ball": {"circle_px": [round(cx, 3), round(cy, 3), round(r, 3)], "found": self.circle_source,
-                     "image_size_wh": [int(self.size[1]), int(self.size[0])]},
+                     "image_size_wh": [int(self.size[1]), int(self.size[0])],
+                     **({} if self.cone is None else {
+                         "centre_ray": [round(float(v), 6) for v in self.cone[0]],
+                         "angular_radius_deg": round(math.degrees(self.cone[1]), 4)})},
             **({"notes": list(self.notes)} if self.notes else {}),
         }
 
@@ -223,12 +228,12 @@ def _refine_circle(log: np.ndarray, start: tuple[float, float, float], rays: int
     """Sub-pixel circle from the strongest radial edge of the image ``log`` along ``rays`` rays around ``start``,
     searched within +-25 % of the radius, then +-(8 % + 2 px), then +-3 px (``widths``).
 
-    Returns (cx, cy, r, support, contrast): the share of rays whose edge lies within 1 px of the fitted circle and
-    the median absolute log step across it."""
+    Returns (cx, cy, r, support, contrast, points): the share of rays whose edge lies within 1 px of the fitted
+    circle, the median step across it, and those edge points (N, 2) (x, y)."""
     cx, cy, r = start
     theta = np.linspace(0, 2 * np.pi, rays, endpoint=False)
     cos, sin = np.cos(theta), np.sin(theta)
-    support, contrast = 0.0, 0.0
+    support, contrast, points = 0.0, 0.0, np.zeros((0, 2))
     for which in widths:
         half_width = {"wide": 0.25 * r, "mid": 0.08 * r + 2.0, "narrow": 3.0}[which]
         s = np.arange(-half_width, half_width + 1e-9, 0.25)  # radial offsets, px
@@ -250,7 +255,7 @@ def _refine_circle(log: np.ndarray, start: tuple[float, float, float], rays: int
         strength = g1
         ok = (strength > 0) & (j > 0) & (j < len(s) - 1)
         if ok.sum() < 12:
-            return cx, cy, r, 0.0, 0.0
+            return cx, cy, r, 0.0, 0.0, np.zeros((0, 2))
         ex = cx + cos[ok] * (r + pos[ok])
         ey = cy + sin[ok] * (r + pos[ok])
         cx, cy, r = _fit_circle(ex, ey, (cx, cy, r))
@@ -261,8 +266,9 @@ def _refine_circle(log: np.ndarray, start: tuple[float, float, float], rays: int
             dist = np.abs(np.hypot(ex - cx, ey - cy) - r)
             inl = dist < 1.0
         support = float(inl.sum()) / rays
-        contrast = float(np.median(strength[ok][inl[: ok.sum()]])) if inl.any() else 0.0
-    return cx, cy, r, support, contrast
+        contrast = float(np.median(strength[ok][inl])) if inl.any() else 0.0
+        points = np.stack([ex[inl], ey[inl]], axis=1)
+    return cx, cy, r, support, contrast, points
 
 
 def _disc(shape: tuple[int, int], circle, scale: float = 1.0) -> np.ndarray:
@@ -310,7 +316,7 @@ def find_ball(images: Sequence[np.ndarray]) -> tuple[tuple[float, float, float],
     cands = [] if found is None else [tuple(float(v) for v in c) for c in found[0][:25]]
     best, best_score, tried = None, 0.0, []
     for c in cands:
-        cx, cy, r, support, contrast = _refine_circle(log, c)
+        cx, cy, r, support, contrast, _ = _refine_circle(log, c)
         if not (min_r * 0.8 <= r <= max_r * 1.1) or support < 0.4:
             continue
         sharp = _highlight_sharpness(lums, (cx, cy, r))
@@ -328,19 +334,29 @@ def find_ball(images: Sequence[np.ndarray]) -> tuple[tuple[float, float, float],
     crops = [_luminance(im[y0:y1, x0:x1]) for im in images]
     _, median = _structure_images(crops, log=False)
     local = (best[0] - x0, best[1] - y0, best[2])
-    cx, cy, r, support, _ = _refine_circle(median, local, widths=("mid", "narrow"))
+    cx, cy, r, support, _, points = _refine_circle(median, local, widths=("mid", "narrow"))
+    edge = None
     if support >= 0.5 and abs(r - best[2]) < 0.05 * best[2] + 1 + 1 / scale and \
             math.hypot(cx - local[0], cy - local[1]) < 2 + 1 / scale:
         best = (cx + x0, cy + y0, r)
+        edge = points + [x0, y0]
     info = {"candidates": len(cands), "support": tried[0][2], "sharpness": tried[0][3], "median_support": support,
-            "work_scale": scale}
+            "work_scale": scale, "edge_px": edge}
     return best, info
 
 
 def circle_from_mask(mask: np.ndarray) -> tuple[float, float, float]:
     """(cx, cy, r) of a ball's disc given as an (H, W) bool mask: a robust circle fit to its outline (the
     outline between inside and outside pixels, at half a pixel)."""
-    m = np.asarray(mask, dtype=bool)
+    return _circle_and_outline(mask)[0]
+
+
+def _circle_and_outline(mask: np.ndarray) -> tuple[tuple[float, float, float], np.ndarray]:
+    """:func:`circle_from_mask` and the outline's points (N, 2) (x, y) in pixels (holes filled: only the
+    outer outline counts)."""
+    from scipy.ndimage import binary_fill_holes
+
+    m = binary_fill_holes(np.asarray(mask, dtype=bool))
     if m.sum() < 20:
         raise MatcapError(f"the ball mask has {int(m.sum())} pixels; it should cover the ball's disc")
     import cv2
@@ -360,25 +376,70 @@ def circle_from_mask(mask: np.ndarray) -> tuple[float, float, float]:
         pts_y.append(yy + 0.5 * dy)
     x = np.concatenate(pts_x).astype(np.float64)
     y = np.concatenate(pts_y).astype(np.float64)
+    inside = (x >= 0) & (y >= 0) & (x <= m.shape[1] - 1) & (y <= m.shape[0] - 1)  # not the image's border
+    x, y = x[inside], y[inside]
     n, labels = cv2.connectedComponents(m.astype(np.uint8))
     if n > 2:  # keep the largest piece's outline
         sizes = np.bincount(labels.ravel())[1:]
         keep = labels == (1 + int(np.argmax(sizes)))
-        return circle_from_mask(keep)
+        return _circle_and_outline(keep)
     cx, cy, r = _fit_circle(x, y)
     disc = _disc(m.shape, (cx, cy, r))
     iou = float((disc & m).sum()) / max(float((disc | m).sum()), 1.0)
     if iou < 0.9:
         raise MatcapError(f"the ball mask is not a disc (it overlaps the best-fitting circle by {100 * iou:.0f} %)")
-    return cx, cy, r
+    return (cx, cy, r), np.stack([x, y], axis=1)
 
 
 # ------------------------------------------------------------------------------------------- geometry
 
 
-def _view_and_normal(x: np.ndarray, y: np.ndarray, circle, size: tuple[int, int], focal_px: float | None):
+def _pixel_rays(x: np.ndarray, y: np.ndarray, size: tuple[int, int], focal_px: float) -> np.ndarray:
+    """(N, 3) unit ray directions (from the pinhole into the scene, camera frame) of pixel coordinates (N,)."""
+    h, w = size
+    px, py = (w - 1) / 2.0, (h - 1) / 2.0
+    x = np.asarray(x, dtype=np.float64)
+    d = np.stack([(x - px) / focal_px, -(np.asarray(y, dtype=np.float64) - py) / focal_px, -np.ones_like(x)],
+                 axis=-1)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def ball_cone(circle, size: tuple[int, int], focal_px: float, edge_px: np.ndarray | None = None):
+    """The perspective ball as the cone of rays tangent to it: (unit ray to its centre (3,), half-angle in
+    radians). From ``edge_px`` (N, 2) points of its outline, a robust fit of the small circle that their rays
+    trace on the sphere of directions (exact for a sphere's off-axis, elliptical image); else from the circle:
+    along the image's radial line through it, the rays to its near and far edges bound the cone."""
+    from scipy.optimize import least_squares
+
+    cx, cy, r = circle
+    h, w = size
+    px, py = (w - 1) / 2.0, (h - 1) / 2.0
+    f = float(focal_px)
+    rho = math.hypot(cx - px, cy - py)
+    a1, a2 = math.atan2(rho - r, f), math.atan2(rho + r, f)
+    alpha = 0.5 * (a2 - a1)
+    beta = 0.5 * (a1 + a2)  # angle of the ball's centre off the optical axis
+    ux, uy = ((cx - px) / rho, (cy - py) / rho) if rho > 1e-9 else (1.0, 0.0)
+    t = f * math.tan(beta)
+    c = _pixel_rays(np.array([px + ux * t]), np.array([py + uy * t]), size, f)[0]
+    if edge_px is None or len(edge_px) < 12:
+        return c, alpha
+    rays = _pixel_rays(edge_px[:, 0], edge_px[:, 1], size, f)
+
+    def resid(p):
+        cc = p[:3] / np.linalg.norm(p[:3])
+        return (np.arccos(np.clip(rays @ cc, -1, 1)) - p[3]) * f  # ~ pixels
+
+    res = least_squares(resid, np.concatenate([c, [alpha]]), loss="soft_l1", f_scale=0.7)
+    c = res.x[:3] / np.linalg.norm(res.x[:3])
+    return c, float(res.x[3])
+
+
+def _view_and_normal(x: np.ndarray, y: np.ndarray, circle, size: tuple[int, int], focal_px: float | None,
+                     cone=None):
     """Per pixel (N,) coordinates: unit view vectors v (toward the camera) and ball normals n, (N, 3) each, and a
-    bool (N,) for pixels whose ray meets the ball."""
+    bool (N,) for pixels whose ray meets the ball. ``cone``: the perspective ball (:func:`ball_cone`; default:
+    from the circle)."""
     cx, cy, r = circle
     if focal_px is None:
         nx = (x - cx) / r
@@ -388,51 +449,32 @@ def _view_and_normal(x: np.ndarray, y: np.ndarray, circle, size: tuple[int, int]
         n = np.stack([nx, ny, np.sqrt(np.clip(q, 0, None))], axis=1)
         v = np.broadcast_to(np.array([0.0, 0.0, 1.0]), n.shape)
         return v, n, hit
-    h, w = size
-    px, py = (w - 1) / 2.0, (h - 1) / 2.0
-    f = float(focal_px)
-
-    def ray(u, vv):
-        d = np.stack([(u - px) / f, -(vv - py) / f, -np.ones_like(np.asarray(u, dtype=np.float64))], axis=-1)
-        return d / np.linalg.norm(d, axis=-1, keepdims=True)
-
-    # the cone of rays tangent to the ball is symmetric about the ray to its centre: along the image's radial line
-    # through the circle, its edges are at rho -+ r from the principal point
-    rho = math.hypot(cx - px, cy - py)
-    a1, a2 = math.atan2(rho - r, f), math.atan2(rho + r, f)
-    alpha = 0.5 * (a2 - a1)
-    beta = 0.5 * (a1 + a2)  # angle of the ball's centre off the optical axis
-    if rho > 1e-9:
-        ux, uy = (cx - px) / rho, (cy - py) / rho
-    else:
-        ux, uy = 1.0, 0.0
-    t = f * math.tan(beta)
-    c = ray(np.array([px + ux * t]), np.array([py + uy * t]))[0]
-    dist = 1.0 / math.sin(alpha)
-    centre = c * dist
-    d = ray(x, y)
+    c, alpha = cone if cone is not None else ball_cone(circle, size, focal_px)
+    dist = 1.0 / math.sin(alpha)  # the ball has radius 1
+    centre = np.asarray(c) * dist
+    d = _pixel_rays(x, y, size, float(focal_px))
     b = d @ centre
     disc = b * b - (dist * dist - 1.0)
     hit = disc >= 0
     t = b - np.sqrt(np.clip(disc, 0, None))
-    p = d * t[:, None]
-    n = p - centre[None, :]
+    n = d * t[:, None] - centre[None, :]
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     return -d, n, hit
 
 
-def reflect(x: np.ndarray, y: np.ndarray, circle, size: tuple[int, int], focal_px: float | None = None):
+def reflect(x: np.ndarray, y: np.ndarray, circle, size: tuple[int, int], focal_px: float | None = None, cone=None):
     """Reflected directions (N, 3) (unit, toward what the ball reflects into each pixel) for pixel coordinates
-    ``x``, ``y`` (N,) (column, row), and a bool (N,) for pixels on the ball."""
+    ``x``, ``y`` (N,) (column, row), and a bool (N,) for pixels on the ball. ``cone``: see :func:`ball_cone`."""
     x = np.asarray(x, dtype=np.float64).ravel()
     y = np.asarray(y, dtype=np.float64).ravel()
-    v, n, hit = _view_and_normal(x, y, circle, size, focal_px)
+    v, n, hit = _view_and_normal(x, y, circle, size, focal_px, cone)
     d = 2.0 * np.sum(n * v, axis=1, keepdims=True) * n - v
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return d, hit
 
 
-def direction_to_pixel(direction: np.ndarray, circle, size: tuple[int, int], focal_px: float | None = None):
+def direction_to_pixel(direction: np.ndarray, circle, size: tuple[int, int], focal_px: float | None = None,
+                       cone=None):
     """(x, y) pixel (column, row) where the ball reflects ``direction`` (3,) into the camera (inverse of
     :func:`reflect`; for the perspective model, found by a few Newton steps)."""
     d = np.asarray(direction, dtype=np.float64)
@@ -444,7 +486,7 @@ def direction_to_pixel(direction: np.ndarray, circle, size: tuple[int, int], foc
     if focal_px is None:
         return float(x), float(y)
     for _ in range(20):
-        got, _ = reflect(np.array([x, x + 0.01, x]), np.array([y, y, y + 0.01]), circle, size, focal_px)
+        got, _ = reflect(np.array([x, x + 0.01, x]), np.array([y, y, y + 0.01]), circle, size, focal_px, cone)
         jac = np.stack([(got[1] - got[0]) / 0.01, (got[2] - got[0]) / 0.01], axis=1)  # (3, 2)
         step, *_ = np.linalg.lstsq(jac, d - got[0], rcond=None)
         x, y = x + step[0], y + step[1]
@@ -474,7 +516,7 @@ def _check_clipped(clipped_px: int, r: float, name: str) -> None:
                           f"{radius_deg:.0f} deg across in reflected directions); take it with less exposure")
 
 
-def locate_highlight(image: np.ndarray, circle, name: str, focal_px: float | None = None) -> dict:
+def locate_highlight(image: np.ndarray, circle, name: str, focal_px: float | None = None, cone=None) -> dict:
     """The highlight of one photo (H, W, 3) on the ball: its light direction and where it is.
 
     Returns a dict: ``direction`` (3,), ``pixel`` (x, y), ``energy`` (3,) (sum over the highlight of the RGB
@@ -516,7 +558,7 @@ def locate_highlight(image: np.ndarray, circle, name: str, focal_px: float | Non
     bg = np.median(img[ring], axis=0) if ring.sum() >= 8 else np.median(img[disc], axis=0)
     yy, xx = np.nonzero(grown)
     wgt = np.clip(lum[yy, xx] - float(bg.mean()), 0, None)
-    dirs, hit = reflect(xx + x0, yy + y0, circle, size, focal_px)
+    dirs, hit = reflect(xx + x0, yy + y0, circle, size, focal_px, cone)
     wgt = np.where(hit, wgt, 0.0)
     if wgt.sum() <= 0:
         raise MatcapError(f"{name}: the highlight lies on the ball's rim; it cannot be located")
@@ -534,7 +576,7 @@ def locate_highlight(image: np.ndarray, circle, name: str, focal_px: float | Non
     if level is not None:
         clipped_px = int(np.count_nonzero(blob & (img.max(axis=2) >= level * (1 - CLIP_TOLERANCE))))
         _check_clipped(clipped_px, r, name)
-    px, py = direction_to_pixel(direction, circle, size, focal_px)
+    px, py = direction_to_pixel(direction, circle, size, focal_px, cone)
     return {"direction": direction, "pixel": (px, py), "energy": energy, "peak": peak, "blob_px": int(blob.sum()),
             "clipped_px": clipped_px, "clipped": clipped_px > 0, "spread_deg": spread}
 
@@ -569,12 +611,14 @@ def calibrate(images: Sequence[np.ndarray], ball_mask: np.ndarray | None = None,
         if m.shape != size:
             raise MatcapError(f"the ball mask is {m.shape[1] if m.ndim > 1 else '?'}x{m.shape[0]} but the photos "
                               f"are {size[1]}x{size[0]} (W x H)")
-        circle = circle_from_mask(m.astype(bool))
+        circle, edge = _circle_and_outline(m.astype(bool))
         source = "mask"
     else:
-        circle, _info = find_ball(images)
+        circle, info = find_ball(images)
+        edge = info["edge_px"]
         source = "auto"
-    found = [locate_highlight(img, circle, name, focal_px) for img, name in zip(images, names)]
+    cone = ball_cone(circle, size, focal_px, edge) if focal_px is not None else None
+    found = [locate_highlight(img, circle, name, focal_px, cone) for img, name in zip(images, names)]
     directions = np.array([f["direction"] for f in found])
     highlights = np.array([f["pixel"] for f in found])
     quality = []
@@ -601,7 +645,8 @@ def calibrate(images: Sequence[np.ndarray], ball_mask: np.ndarray | None = None,
             notes.append("intensities unknown: a highlight carries no energy above the ball's background")
     return Calibration(directions=directions, intensities=intensities, circle=tuple(float(v) for v in circle),
                        highlights=highlights, names=names, quality=quality, size=size, camera=camera,
-                       focal_px=None if focal_px is None else float(focal_px), circle_source=source, notes=notes)
+                       focal_px=None if focal_px is None else float(focal_px), circle_source=source, notes=notes,
+                       cone=None if cone is None else (np.asarray(cone[0], dtype=np.float64), float(cone[1])))
 
 
 # ------------------------------------------------------------------------------------------- outputs

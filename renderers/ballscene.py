@@ -31,6 +31,8 @@ class BallScene:
     directions: (K, 3) unit vectors toward each photo's light; irradiance: (K, 3) linear RGB (default 3.0 each).
     mesh: None for a sphere, else (vertices (V, 3), faces (F, 3)) in any units (centred and scaled here);
     mesh_rotation_deg: turn of the mesh about +y, then about +x (degrees).
+    focal_px: a perspective camera instead (pinhole at (0, 0, camera_distance), focal length in pixels, principal
+    point at the image centre).
     """
 
     directions: np.ndarray
@@ -48,12 +50,22 @@ class BallScene:
     backdrop_albedo: float = 0.45
     ambient: float = 0.03
     max_depth: int = 2
+    focal_px: float | None = None  # None: orthographic camera; else a pinhole at (0, 0, camera_distance)
+    camera_distance: float = 10.0
     extra: dict = field(default_factory=dict)
 
     def circle_px(self, size: int) -> tuple[float, float, float]:
-        """The ball's true circle (cx, cy, r) in pixels of a ``size`` x ``size`` render (see the module)."""
-        bx, by, _ = self.ball_centre
-        return ((bx + 1) * size / 2 - 0.5, (1 - by) * size / 2 - 0.5, self.ball_radius * size / 2)
+        """The ball's true circle (cx, cy, r) in pixels of a ``size`` x ``size`` render (see the module); for the
+        perspective camera, its centre's projection and ``focal_px R / distance`` (an approximation: the image
+        of an off-axis sphere is a slight ellipse)."""
+        bx, by, bz = self.ball_centre
+        if self.focal_px is None:
+            return ((bx + 1) * size / 2 - 0.5, (1 - by) * size / 2 - 0.5, self.ball_radius * size / 2)
+        depth = self.camera_distance - bz
+        c = (size - 1) / 2
+        dist = float(np.sqrt(bx * bx + by * by + depth * depth))
+        return (c + self.focal_px * bx / depth, c - self.focal_px * by / depth,
+                self.focal_px * self.ball_radius / np.sqrt(dist * dist - self.ball_radius ** 2))
 
 
 @dataclass
@@ -149,14 +161,23 @@ def scene_shapes(scene: BallScene) -> dict:
     }
 
 
-def _sensor(mi, size: int, spp: int, seed: int, centre: bool = False) -> dict:
+def _sensor(mi, size: int, spp: int, seed: int, centre: bool = False, focal_px: float | None = None,
+            distance: float = 10.0) -> dict:
+    """Orthographic camera on +z (default), or with ``focal_px`` a pinhole at (0, 0, ``distance``) looking down -z
+    with that focal length in pixels (horizontal field of view ``2 atan(size / 2 / focal_px)``, principal point at
+    the image centre)."""
     sampler = ({"type": "stratified", "sample_count": 1, "jitter": False, "seed": int(seed)} if centre
                else {"type": "multijitter", "sample_count": int(spp), "seed": int(seed)})
-    return {"type": "orthographic",
-            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 10], target=[0, 0, 0], up=[0, 1, 0]),
-            "near_clip": 0.01, "far_clip": 100.0, "sampler": sampler,
-            "film": {"type": "hdrfilm", "width": int(size), "height": int(size), "rfilter": {"type": "box"},
-                     "pixel_format": "rgb"}}
+    film = {"type": "hdrfilm", "width": int(size), "height": int(size), "rfilter": {"type": "box"},
+            "pixel_format": "rgb"}
+    if focal_px is None:
+        return {"type": "orthographic",
+                "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 10], target=[0, 0, 0], up=[0, 1, 0]),
+                "near_clip": 0.01, "far_clip": 100.0, "sampler": sampler, "film": film}
+    fov = float(np.degrees(2 * np.arctan(size / 2 / focal_px)))
+    return {"type": "perspective", "fov": fov, "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, distance], target=[0, 0, 0], up=[0, 1, 0]),
+            "near_clip": 0.01, "far_clip": 100.0, "sampler": sampler, "film": film}
 
 
 def scene_dict(scene: BallScene, k: int, size: int = DEFAULT_SIZE, spp: int = DEFAULT_SPP, seed: int = 0) -> dict:
@@ -171,7 +192,8 @@ def scene_dict(scene: BallScene, k: int, size: int = DEFAULT_SIZE, spp: int = DE
     irr = _irradiance(scene)
     light = DirectionalLight(tuple(float(v) for v in scene.directions[k]), tuple(float(v) for v in irr[k]))
     return {"type": "scene", "integrator": {"type": "path", "max_depth": int(scene.max_depth)},
-            "sensor": _sensor(mi, size, spp, seed + k), **scene_shapes(scene), "light": emitter_dict(light)}
+            "sensor": _sensor(mi, size, spp, seed + k, focal_px=scene.focal_px, distance=scene.camera_distance),
+            **scene_shapes(scene), "light": emitter_dict(light)}
 
 
 def _irradiance(scene: BallScene) -> np.ndarray:
@@ -211,7 +233,8 @@ def ground_truth(scene: BallScene, size: int = DEFAULT_SIZE) -> dict:
 
     shapes = scene_shapes(scene)
     shapes.pop("ambient")
-    desc = {"type": "scene", "sensor": _sensor(mi, size, 1, 0, centre=True), **shapes}
+    desc = {"type": "scene", "sensor": _sensor(mi, size, 1, 0, centre=True, focal_px=scene.focal_px,
+                                                distance=scene.camera_distance), **shapes}
     mscene = mi.load_dict(desc)
     aov = mi.load_dict({"type": "aov", "aovs": "nn:sh_normal,si:shape_index,dd:depth"})
     a = render_array(mscene, aov, spp=1, seed=0)

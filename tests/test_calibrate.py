@@ -122,23 +122,26 @@ def _perspective_ball(focal: float, centre: np.ndarray, lights: np.ndarray, size
     return photos
 
 
-def test_perspective_model():
+@pytest.mark.parametrize("centre", [(0.9, -0.6, -7.0), (-1.2, -1.0, -6.5)])  # the second is cut by the border
+@pytest.mark.parametrize("with_mask", [False, True])
+def test_perspective_model(centre, with_mask):
     rng = np.random.default_rng(3)
     lights = rng.normal(size=(6, 3)) * [0.4, 0.4, 0.0] + [0, 0, 1]
     lights /= np.linalg.norm(lights, axis=1, keepdims=True)
     focal = 250.0
-    centre = np.array([0.9, -0.6, -7.0])
-    photos = _perspective_ball(focal, centre, lights)
-    cal = calibrate(photos, focal_px=focal)
+    photos = _perspective_ball(focal, np.array(centre), lights)
+    mask = photos[0].mean(axis=2) < 0.21 if with_mask else None  # ball 0.02, background 0.4: half-way
+    cal = calibrate(photos, focal_px=focal, ball_mask=mask)
     assert cal.camera.startswith("perspective f=250")
+    assert abs(math.degrees(cal.cone[1]) - math.degrees(math.asin(1 / np.linalg.norm(centre)))) < 0.03
     err = _angles(cal.directions, lights)
-    assert err.max() < 0.5, err
-    ortho = calibrate(photos)  # the orthographic model on a perspective photo is off by degrees
-    assert np.median(_angles(ortho.directions, lights)) > 2 * np.median(err)
+    assert err.max() < 0.3, err
+    ortho = calibrate(photos, ball_mask=mask)  # the orthographic model on a perspective photo is off by degrees
+    assert np.median(_angles(ortho.directions, lights)) > 3 * np.median(err) + 1
     # inverse mapping
     for k in range(3):
-        x, y = direction_to_pixel(cal.directions[k], cal.circle, cal.size, focal)
-        d, _ = reflect(np.array([x]), np.array([y]), cal.circle, cal.size, focal)
+        x, y = direction_to_pixel(cal.directions[k], cal.circle, cal.size, focal, cal.cone)
+        d, _ = reflect(np.array([x]), np.array([y]), cal.circle, cal.size, focal, cal.cone)
         assert _angles(d, cal.directions[k:k + 1])[0] < 1e-3
 
 
