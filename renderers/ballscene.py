@@ -9,12 +9,13 @@ Scene: the object (a sphere, or a triangle mesh given as vertices and faces, sca
 ``object_radius``) with a glossy Principled BSDF; the ball, a rough conductor (chrome, GGX alpha ``ball_alpha``);
 a diffuse grey backdrop plane behind both (z = ``backdrop_z``) that the lights also light, so the ball's outline
 shows against it; a dim uniform "room" ambient that the ball reflects. Each photo has one ``directional`` emitter.
-Rendered with the ``path`` integrator (``max_depth`` 3: the ball shows the lit object and backdrop), linear RGB.
+Rendered with the ``path`` integrator, linear RGB; ``max_depth`` 2 by default (direct light and the ambient: the
+ball's sharp lobe turns deeper paths from the backdrop into fireflies), 3 to let the ball show the lit object.
 Ground truth of the object (normals, mask) from the ``aov`` integrator at one pixel-centre sample.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -52,12 +53,11 @@ class BallScene:
     max_depth: int = 2
     focal_px: float | None = None  # None: orthographic camera; else a pinhole at (0, 0, camera_distance)
     camera_distance: float = 10.0
-    extra: dict = field(default_factory=dict)
 
     def circle_px(self, size: int) -> tuple[float, float, float]:
         """The ball's true circle (cx, cy, r) in pixels of a ``size`` x ``size`` render (see the module); for the
-        perspective camera, its centre's projection and ``focal_px R / distance`` (an approximation: the image
-        of an off-axis sphere is a slight ellipse)."""
+        perspective camera, its centre's projection and ``focal_px tan(angular radius)`` (an approximation: the
+        image of an off-axis sphere is a slight ellipse)."""
         bx, by, bz = self.ball_centre
         if self.focal_px is None:
             return ((bx + 1) * size / 2 - 0.5, (1 - by) * size / 2 - 0.5, self.ball_radius * size / 2)
@@ -212,7 +212,6 @@ def render(scene: BallScene, size: int = DEFAULT_SIZE, spp: int = DEFAULT_SPP, s
 
     dirs = np.asarray(scene.directions, dtype=np.float64)
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    scene.directions = dirs
     images = []
     for k in range(len(dirs)):
         mscene = mi.load_dict(scene_dict(scene, k, size, spp, seed))
