@@ -310,7 +310,7 @@ def find_ball(images: Sequence[np.ndarray]) -> tuple[tuple[float, float, float],
     lo, hi = np.percentile(log, [1, 99.5])
     u8 = (np.clip((log - lo) / max(hi - lo, 1e-6), 0, 1) * 255).astype(np.uint8)
     side = min(h, w)
-    min_r, max_r = max(int(0.04 * side), 6), int(0.5 * side)
+    min_r, max_r = max(int(0.01 * side), 5), int(0.5 * side)
     found = cv2.HoughCircles(u8, cv2.HOUGH_GRADIENT, dp=1, minDist=max(4, min_r // 2), param1=60, param2=18,
                              minRadius=min_r, maxRadius=max_r)
     cands = [] if found is None else [tuple(float(v) for v in c) for c in found[0][:25]]
