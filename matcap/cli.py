@@ -19,6 +19,7 @@ from matcap.errors import MatcapError, sigterm_as_interrupt
 
 COMMANDS = [
     "capture",
+    "calibrate",
     "refine",
     "relight",
     "gallery",
