@@ -41,7 +41,7 @@ class KnownLights:
 
     directions: (K, 3) unit vectors toward the light, camera frame (x right, y up, z toward the camera);
     intensities: (K, 3) relative linear RGB, or None (fitted per photo);
-    positions: (K, 3) point-light positions in the framing plane's units (``docs/lights_json.md``) where the file
+    positions: (K, 3) point-light positions in the framing plane's units (``docs/lights.md``) where the file
         held point lights (a previous capture's near lamps), else None; ``directions`` are then toward the
         object's centre;
     source: "file" or "ball"; path: the file read; matched: how rows met photos ("name", "order", "names.txt").
@@ -199,7 +199,7 @@ def _read_json(path: Path) -> tuple[_Rows, str]:
         pos = [p if p is not None else np.asarray(d) / max(np.linalg.norm(d), 1e-12) * 1e6 for p, d in zip(pos, dirs)]
     positions = np.array(pos, np.float64) if any(has_pos) else None
     intens = None if any(i is None for i in ints) else np.array(ints, np.float64)
-    if intens is not None and doc.get("intensities") == "unknown":
+    if intens is not None and doc.get("intensity_known") is False:  # a calibration that could not tell them
         intens = None
     source = "ball" if doc.get("source") == "ball" else "file"
     return _Rows(np.array(dirs, np.float64), intens,
