@@ -87,4 +87,4 @@ def test_refine_bad_input_is_one_line_exit_2(tiny_weights, tmp_path):
     r = run_cli("refine", str(out), str(dark), "--out", str(tmp_path / "o2"), "--quiet")
     assert_one_line_error(r, "black")
     r = run_cli("refine", str(out), str(folder), "--out", str(tmp_path / "o3"), "--linear", "--srgb")
-    assert_one_line_error(r, "contradict")
+    assert_one_line_error(r, "not allowed with")

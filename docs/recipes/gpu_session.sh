@@ -1,4 +1,4 @@
-# The GPU session behind normal_small v3 and brdf_small v1 (session 3; one H100, 16 CPU cores, 3 calls of ~9 min).
+# How the bundled normal_small and brdf_small models were trained on a lent GPU (one H100, 16 CPU cores, 3 calls of ~9 min).
 # The GPU machine could take 64 MiB per upload and kept its disk only while it was in use, so the training data
 # went up as networks.datapack packs, one per call, and each call resumed both runs on the grown dataset:
 #
@@ -10,7 +10,7 @@
 #   DECAY=2000 LR_N=2.5e-4 LR_B=2.5e-4 bash gpu_session.sh 3 470 t1b.npz                    # call 3: 695 scenes
 #
 # Next time: BRDF_LOSS="--brdf-weights 1,2,2 --brdf-loss-before-relu" INIT_B=networks/weights/brdf_small.safetensors
-# (session 5: the BRDF loss before the ReLU reaches the metals), `pack --quality 95` (lossy WebP basis renders, 3.3x smaller: ~430 scenes per 29 MiB) and, from call 2
+# (the BRDF loss before the ReLU reaches the metals), `pack --quality 95` (lossy WebP basis renders, 3.3x smaller: ~430 scenes per 29 MiB) and, from call 2
 # on, the bundled weights moved out of the working tree (DEVELOPING.md) would carry several times more scenes.
 #
 # usage: bash gpu_session.sh PHASE SECONDS PACK... (PHASE 1 starts both runs, 2+ adds data and resumes them);

@@ -4,7 +4,7 @@
 #
 #   bash docs/recipes/gpu_v2.sh CALL SECONDS PACK...      # on the device machine, from the repository root
 #
-# CALL 1 starts both runs (from networks/weights/*_small.safetensors; the BRDF run with the session-5 loss
+# CALL 1 starts both runs (from networks/weights/*_small.safetensors; the BRDF run with the loss
 # `--brdf-weights 1,2,2 --brdf-loss-before-relu`); a later CALL unpacks its packs while the runs go on, then
 # restarts them with --resume on the grown data (the machine's disk lives as long as it is held: make each call
 # right after the previous one returns). The runs are detached (setsid) and keep training between calls, so no
