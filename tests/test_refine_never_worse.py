@@ -60,7 +60,7 @@ def test_unequal_lamps_leave_a_good_prior_its_bas_relief(monkeypatch):
 def test_the_fit_is_not_worse_than_the_networks_on_a_rendered_matte_ball(tmp_path):
     """The whole path on a rendered matte ball (128^2, 16 lamps of +-30 % power, photon and read noise, 16-bit
     linear PNGs): the bundled networks, then the estimated-lights fit, against the analytic sphere (measured:
-    networks 3.60, fit 3.30 degrees)."""
+    networks 3.60, fit 3.30 degrees; 4.67 before the equal-irradiance gate)."""
     import torch
 
     from matcap.capture import estimate, load_capture, load_networks
