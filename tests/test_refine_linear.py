@@ -283,8 +283,9 @@ def test_equal_irradiance_picks_the_bas_relief_a_flat_prior_misses():
 
 def test_a_good_prior_keeps_its_bas_relief_under_unequal_lamps():
     """A prior that fits well (3.6 degrees of local noise) and lamps whose irradiances differ by up to +-20 %
-    (tinted, or at different distances): equal irradiance is not forced on them at the default weight, since the
-    prior's misfit counts relative to its own (measured 0.51 / 0.30 degrees; 2.3 / 1.6 at weight 1000)."""
+    (tinted, or at different distances): no bas-relief makes such lamps equal, so the member that equal irradiance
+    picks removes little of their log-irradiance variance and the prior alone chooses, at the default weight and
+    at 1000 (measured 0.01 / 0.01 degrees; before that gate 0.51 / 0.30 at the default, 2.3 / 1.6 at 1000)."""
     from matcap.refine.linear import integrable_ambiguity
 
     n, mask = _bumps()
@@ -296,9 +297,8 @@ def test_a_good_prior_keeps_its_bas_relief_under_unequal_lamps():
     for w in (RefineSettings().equal_lights, 1000.0):
         a = integrable_ambiguity(n, mask, good, mask.astype(float), lights=lights, equal_lights=w, sigma=0.0)
         errs[w] = float(np.mean(_angles(n @ a.T, n))), float(np.median(_angles(lights @ np.linalg.inv(a), lights)))
-    default, strong = errs[RefineSettings().equal_lights], errs[1000.0]
-    assert default[0] < 1.0 and default[1] < 1.0, errs
-    assert strong[0] > 2.0 * default[0], errs  # forcing equal irradiance would bend it
+    for normal_err, light_err in errs.values():
+        assert normal_err < 0.1 and light_err < 0.1, errs
 
 
 def test_ambient_share_of_known_lights():

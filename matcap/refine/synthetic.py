@@ -5,6 +5,8 @@ Only :func:`render_capture` uses Mitsuba (through ``renderers``); the rest is nu
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from matcap.evaluation.toy import cone_lights, sphere_normals
@@ -166,3 +168,73 @@ def perturb(maps: MaterialMaps, seed: int = 0, normal_deg: float = 8.0, rough_sh
     r = np.where(m, maps.roughness + rough_shift * np.sign(0.5 - maps.roughness), 0)
     return MaterialMaps(normal=n.astype(np.float32), mask=m, base_color=(maps.base_color * base_gain).astype(np.float32),
                         roughness=r.astype(np.float32), metallic=np.where(m, 0.1, 0).astype(np.float32))
+
+
+def ball_lights(count: int = 16, seed: int = 0, max_polar_deg: float = 45.0, min_polar_deg: float = 8.0,
+                unequal: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """(directions (K, 3) unit, toward the lamps; RGB irradiances (K, 3)): polar angles spread between
+    ``min_polar_deg`` and ``max_polar_deg`` from the view axis, azimuths on a golden-angle spiral; each lamp's power
+    drawn in [1 - unequal, 1 + unequal] and its colour tinted by up to 5 % per channel."""
+    rng = np.random.default_rng(seed)
+    i = np.arange(count) + 0.5
+    lo, hi = np.cos(np.radians(min_polar_deg)), np.cos(np.radians(max_polar_deg))
+    cos_t = lo + (hi - lo) * i / count
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * i * count / 2 + rng.uniform(0, 2 * np.pi)
+    sin_t = np.sqrt(1.0 - cos_t ** 2)
+    dirs = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], 1)
+    dirs = dirs[rng.permutation(count)]
+    power = rng.uniform(1.0 - unequal, 1.0 + unequal, (count, 1))
+    tint = rng.uniform(0.95, 1.05, (count, 3))
+    return dirs, power * tint
+
+
+def matte_ball(folder: Path, side: int = 192, seed: int = 0, count: int = 16, unequal: float = 0.3,
+                ambient: float = 0.02, full_well: float = 20000.0, read_noise: float = 4.0,
+                max_polar_deg: float = 45.0, albedo_variation: float = 0.1, brdf: str = "lambert",
+                roughness: float = 0.8) -> dict:
+    """Write the matte ball's photos (16-bit linear PNG), ``mask.png`` and ``lights.txt`` (the true directions, one
+    row per photo) to ``folder``. Noise: Poisson photon noise for a full well of ``full_well`` electrons at the
+    PNG's white, plus Gaussian read noise of ``read_noise`` electrons. ``brdf`` "lambert" (a matte ball), or
+    "principled": the fit's own model (:func:`matcap.refine.model.shade_directional`, ``roughness``, metallic 0,
+    specular 0.5), so that the model can explain the photos exactly. Returns {directions, irradiance, mask}."""
+    from matcap import imageio
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(1000 + seed)
+    c = (side - 1) / 2.0
+    yy, xx = np.mgrid[0:side, 0:side].astype(np.float64)
+    x, y = (xx - c) / (0.42 * side), -(yy - c) / (0.42 * side)
+    inside = x ** 2 + y ** 2 < 1.0
+    n = np.stack([x, y, np.sqrt(np.clip(1 - x ** 2 - y ** 2, 0, 1))], -1)
+    base = np.array([0.62, 0.55, 0.47])
+    vary = 1.0 + albedo_variation * np.sin(2.1 * x + 0.7) * np.cos(1.7 * y - 0.4)  # smooth, low contrast
+    albedo = base[None, None] * vary[..., None]
+    dirs, irr = ball_lights(count, seed, max_polar_deg, unequal=unequal)
+    sky = ambient * (1.0 + n[..., 2:3]) / 2.0  # a weak fixed light from the camera's side
+    if brdf == "lambert":
+        shading = np.clip(np.einsum("hwc,kc->khw", n, dirs), 0, None)[..., None] * irr[:, None, None, :]
+        img = albedo[None] * (shading + sky[None])
+    else:
+        import torch
+
+        from matcap.refine.model import shade_directional
+
+        t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
+        flat = n.reshape(-1, 3).copy()
+        flat[:, 2] = np.maximum(flat[:, 2], 1e-3)
+        flat /= np.linalg.norm(flat, axis=1, keepdims=True)
+        pix = len(flat)
+        with torch.no_grad():
+            direct = shade_directional(t(flat), t(albedo.reshape(-1, 3)), t(np.full(pix, roughness)),
+                                       t(np.zeros(pix)), t(dirs), t(irr), torch.zeros(1, 9, 3)).numpy()
+        img = direct.reshape((count,) + n.shape) * np.pi + (albedo * sky)[None]
+    img = np.where(inside[None, ..., None], img, 0.0)
+    img *= 0.85 / np.percentile(img[:, inside].max(axis=(1, 2)), 99)  # the brightest photo near 0.85 of white
+    e = rng.poisson(np.clip(img, 0, None) * full_well).astype(np.float64)
+    e += rng.normal(0.0, read_noise, e.shape) + 0.0
+    photos = np.clip(e / full_well, 0.0, 1.0)
+    for k in range(count):
+        imageio.write_png(folder / f"{k + 1:03d}.png", photos[k], bits=16)
+    imageio.write_png(folder / "mask.png", inside.astype(np.float32), bits=8)
+    np.savetxt(folder / "lights.txt", dirs, fmt="%.6f")
+    return {"directions": dirs, "irradiance": irr, "mask": inside}
