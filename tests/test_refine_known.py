@@ -45,7 +45,7 @@ def test_known_lights_recover_a_glossy_sphere(glossy):
     seen = np.zeros(len(n), bool)
     for l in lights:
         h = np.asarray(l.direction) + (0, 0, 1)
-        seen |= n @ (h / np.linalg.norm(h)) > np.cos(np.radians(8))
+        seen |= n @ (h / np.linalg.norm(h)) > np.cos(np.radians(6))
     assert seen.sum() > 100
     r_err = np.abs(res.maps.roughness[m] - truth.roughness[m])[seen].mean()
     assert r_err < 0.05, r_err

@@ -696,8 +696,25 @@ def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.n
         w, v = np.linalg.eigh(m)
         u = v[:, 0] * np.sign(v[:, 0].sum())
         if (u > 1e-6 * np.abs(u).max()).all():
-            e = 1.0 / u
+            found = 1.0 / u
+            # shadows, highlights and quantisation bend the closed form on real photos: keep it only where the
+            # robust Lambertian fit under it explains the photos better than equal lamps do
+            if _lambertian_misfit(y, d, found, normal) < _lambertian_misfit(y, d, e, normal):
+                e = found
     return e * level / e.mean()
+
+
+def _lambertian_misfit(y: np.ndarray, d: np.ndarray, e: np.ndarray, normal: np.ndarray) -> float:
+    """Median absolute residual / mean luminance of the robust Lambertian fit of ``y`` (K, P) under lights
+    ``d`` (K, 3) of irradiances ``e`` (K,) (overall scale free): how well those irradiances explain the photos."""
+    from matcap.refine.linear import solve_normals
+
+    s_lum = d * (e / e.mean())[:, None]
+    n, alb, solved = solve_normals(y, s_lum, normal)
+    if solved.sum() < 16:
+        return float("inf")
+    shading = np.clip(n[solved] @ s_lum.T, 0.0, None).T * alb[solved][None]
+    return float(np.median(np.abs(y[:, solved] - shading)) / max(float(y.mean()), 1e-12))
 
 
 def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: str, iters: int,
