@@ -17,6 +17,7 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 def _module():
     spec = importlib.util.spec_from_file_location("results_script", REPO / "benchmarks" / "results.py")
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
     spec.loader.exec_module(mod)
     return mod
 
