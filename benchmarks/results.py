@@ -629,9 +629,29 @@ def replace_between(path: Path, start: str, end: str, body: str, new_file: str =
 
 NEW_DOC = """# Results
 
-Every number below is measured by `python benchmarks/results.py`, which runs the command in the row's last column
-on this checkout and rewrites the table between the markers (`--quick`: a small subset in a few minutes). Values are
-mean angular errors in degrees unless stated; times are wall seconds on the machine named in the row.
+Every number on this page is measured by `python benchmarks/results.py` on the checkout it lives in. Each row
+runs the commands in its last column (the project's own: `matcap eval`, `matcap capture`, `matcap synth`,
+`python -m networks.validate` and the scripts in `benchmarks/`), reads the numbers from their output, and records
+the date, the machine and its load. Nothing between the markers is typed by hand; the README's results summary
+comes from the same run.
+
+```
+python benchmarks/results.py                        # every row (hours on 2 cores): this page and the README summary
+python benchmarks/results.py --only bunny_speed     # some rows; the others come from the cache or stay as they are
+python benchmarks/results.py --quick --out FILE     # a small subset in a few minutes, written to FILE (CI runs it)
+python benchmarks/results.py --list                 # the rows: which are quick, which need ../shared/data
+```
+
+Finished commands are cached in the work folder (`--work`, default `matcap-results` in the system's temporary
+folder), so an interrupted run resumes where it stopped; `--fresh` measures again. Rows marked *shared* need
+`../shared/data` (the UW and ToyPS captures, the held-out assets of the synthetic test split, textures and
+environment maps) and say so when it is missing. `--data-test DIR` uses an existing synthetic test split instead
+of rendering one.
+
+Reading the numbers: angles are mean angular errors in degrees over the object's pixels; "network → fit" is the
+bundled networks' normals before and after the fit of the photos (`matcap capture` runs both by default). Times are
+wall seconds on the machine named in the row, with its load average when the command started: where other jobs
+share the machine, every time is longer than on an idle one. Peak memory is the command's largest resident set.
 
 """
 
