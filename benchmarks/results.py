@@ -512,13 +512,15 @@ def refine_samples(ctx: Ctx):
 ACC, SPEED, FIT = "Accuracy of the networks", "Speed and memory", "The fit of the photos (network → fit)"
 ROWS = [
     Row("synthetic_normals", ACC, "normal error, synthetic test split (128²), lights unknown: mean angle",
-        synthetic_normals, shared=True, quick=True, quick_what="normal error, first 4 scenes of the synthetic test split", summary="normal error, synthetic test split"),
+        synthetic_normals, shared=True, quick=True, summary="normal error, synthetic test split",
+        quick_what="normal error, first 4 scenes of the synthetic test split"),
     Row("brdf_rmse", ACC, "BRDF RMSE base color / roughness / metallic, synthetic test split", brdf_rmse,
         shared=True, quick=True, summary="BRDF RMSE base color / roughness / metallic, synthetic"),
     Row("sphere_normals", ACC, "normal error, ToyPS sphere (truth from its silhouette), 50 photos",
         sphere_normals, shared=True, quick=True, summary="normal error, ToyPS sphere"),
     Row("uw_normals", ACC, "normals vs calibrated least squares, real UW captures (mean angle)", uw_normals,
-        shared=True, quick=True, quick_what="normals vs calibrated least squares, UW cat at 128 px", summary="normals vs calibrated least squares, real UW captures"),
+        shared=True, quick=True, summary="normals vs calibrated least squares, real UW captures",
+        quick_what="normals vs calibrated least squares, UW cat at 128 px"),
     Row("uw_baselines", ACC, "robust vs plain least squares, both given the lights, UW captures without chrome",
         uw_baselines, shared=True, quick=True, quick_what="robust vs plain least squares, UW cat"),
     Row("bunny_speed", SPEED, "`examples/bunny` end to end: both networks and the fit", bunny_speed, quick=True,
