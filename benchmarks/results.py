@@ -47,7 +47,7 @@ SUM_START, SUM_END = "<!-- results-summary:start -->", "<!-- results-summary:end
 UW = "uw_buddha,uw_cat,uw_gray,uw_horse,uw_owl,uw_rock"  # the UW captures without the mirror sphere
 UW_ALL = "uw_buddha,uw_cat,uw_chrome,uw_gray,uw_horse,uw_owl,uw_rock"
 SYNTH_TEST = ["--scenes", "48", "--resolution", "128", "--seed", "7"]  # the published test split
-SYNTH_QUICK = ["--scenes", "4", "--resolution", "64", "--seed", "7"]
+SYNTH_QUICK = ["--scenes", "4", "--resolution", "128", "--seed", "7"]  # the networks take multiples of 128
 
 
 # ----------------------------------------------------------------------------------------------- running commands
