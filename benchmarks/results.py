@@ -432,6 +432,39 @@ def refine_uw(ctx: Ctx, side: int):
     return f"{deg(num(m[1]))} → **{deg(num(m[2]))}**", comp, [run]
 
 
+def refine_uw_known(ctx: Ctx, source: str):
+    """UW at 160 px with lights given: each capture's ``lights.txt`` ("txt"), or the rig that ``matcap calibrate``
+    finds from the chrome ball of ``uw_chrome`` ("ball")."""
+    runs = []
+    lights = "txt"
+    if source == "ball":
+        rig = ctx.work / "uw_rig.json"
+        runs.append(ctx.run(ctx.matcap + ["calibrate", SHARED / "captures" / "uw_chrome", "--out", rig,
+                                          "--overwrite", "--quiet"]))
+        lights = str(rig)
+    objs = ["--objects", "cat"] if ctx.quick else []
+    run = ctx.run([*ctx.py, "benchmarks/refine_check.py", "uw", "--max-side", 128 if ctx.quick else 160, *objs,
+                   "--threads", "1", "--lights", lights])
+    runs.append(run)
+    t = tables(run.stdout)[0]
+    m = row_by(t, "mean") if len(t) > 2 else t[1]
+    comp = f"re-render {num(m[5]):.1f} dB; the fit {num(m[7]):.0f} s per capture"
+    if source == "ball":
+        comp = f"the ball's light directions vs lights.txt: median {num(m[3]):.2f}°, max {num(m[4]):.2f}°; " + comp
+    return f"{deg(num(m[1]))} → **{deg(num(m[2]))}**", comp, runs
+
+
+def refine_synthetic_known(ctx: Ctx):
+    split = ctx.test_split()
+    n = 6 if ctx.quick else len(ctx.scenes(split, None))
+    run = ctx.run([*ctx.py, "benchmarks/refine_check.py", "synthetic", "--data", split, "--scenes", n,
+                   "--threads", "1", "--given-lights", "--given-only"])
+    t = tables(run.stdout)[0]
+    m = row_by(t, "mean, lights given")
+    return (f"{deg(num(m[2]))} → **{deg(num(m[3]))}** ({m[-1].strip()})",
+            f"roughness RMSE {num(m[6]):.3f} → {num(m[7]):.3f}, metallic {num(m[8]):.3f} → {num(m[9]):.3f}", [run])
+
+
 def refine_sphere(ctx: Ctx):
     run = ctx.run([*ctx.py, "benchmarks/refine_check.py", "sphere", "--capture", SHARED / "captures" /
                    "toyps_sphere", "--threads", "1"])
@@ -540,6 +573,12 @@ ROWS = [
         quick_what="real UW cat, 128 px: normals vs calibrated least squares",
         summary="real UW captures, network → fit, vs calibrated least squares"),
     Row("refine_uw512", FIT, "the same at full size (512 × 340)", lambda c: refine_uw(c, 512), shared=True),
+    Row("refine_uw_txt", FIT, "the UW captures at 160 px with their lights.txt given (--lights)",
+        lambda c: refine_uw_known(c, "txt"), shared=True),
+    Row("refine_uw_ball", FIT, "the UW captures at 160 px with the lights of `matcap calibrate uw_chrome`",
+        lambda c: refine_uw_known(c, "ball"), shared=True),
+    Row("refine_synthetic_known", FIT, "synthetic test split, directional scenes given their true lights",
+        refine_synthetic_known, shared=True),
     Row("refine_sphere", FIT, "ToyPS sphere, 16 photos: normals vs the truth", refine_sphere, shared=True),
     Row("refine_synthetic", FIT, "synthetic test split: normals vs the truth", refine_synthetic, shared=True,
         quick=True),

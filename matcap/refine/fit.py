@@ -666,55 +666,36 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
 
 
 def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.ndarray,
-                     relative: np.ndarray | None = None) -> np.ndarray:
-    """Per-photo irradiance (K,) of lights whose directions are known: semi-calibrated Lambertian photometric
-    stereo in closed form. Each pixel lit in every photo obeys y_k / e_k = d_k . b (b: albedo times normal), so the
-    inverse irradiances u = 1 / e span the null space of M = P o (Y Y^T), with P the projection off the span of
-    the directions' columns (K x K) and Y the lit pixels' luminance (K, P); u is M's eigenvector of the smallest
-    eigenvalue. Falls back to equal irradiances where fewer than 3K pixels are lit in every photo, or the
-    solution is not positive.
+                     relative: np.ndarray | None = None, rounds: int = 4) -> np.ndarray:
+    """Per-photo irradiance (K,) of lights whose directions are known, as the start of the light fit: robust
+    Lambertian normals under the lights (:func:`matcap.refine.linear.solve_normals`: shadows and highlights weigh
+    little) alternated with each photo's irradiance by least squares over the pixels it lights. From equal lamps,
+    this moves little; the joint Principled fit that follows finds each photo's intensity.
 
-    luminance: (K, P) photo luminance; directions: (K, 3) unit; normal: (P, 3) (unused by the closed form, kept for
-    the fall-back's level); relative: (K,) given relative irradiances (only their overall scale is found) or None.
-    The overall scale is fixed so that the mean irradiance is the photos' mean luminance times pi (the albedo
-    absorbs the rest).
+    luminance: (K, P) photo luminance; directions: (K, 3) unit; normal: (P, 3) start normals (the networks');
+    relative: (K,) given relative irradiances (only their overall scale is found) or None. The overall scale is
+    fixed so that the mean irradiance is the photos' mean luminance times pi (the albedo absorbs the rest).
     """
+    from matcap.refine.linear import solve_normals
+
     y = np.asarray(luminance, np.float64)
     d = np.asarray(directions, np.float64)
-    k = len(d)
     level = max(float(y.mean()) * math.pi, 1e-9)
     if relative is not None:
         rel = np.asarray(relative, np.float64)
         return rel * level / max(float(rel.mean()), 1e-12)
-    floor = 0.05 * np.percentile(y, 95, axis=1, keepdims=True)
-    lit = (y > floor).all(axis=0)
-    e = np.ones(k)
-    if lit.sum() >= 3 * k and k > 3:
-        yl = y[:, lit]
-        proj = np.eye(k) - d @ np.linalg.pinv(d)
-        m = proj * (yl @ yl.T) / lit.sum()
-        w, v = np.linalg.eigh(m)
-        u = v[:, 0] * np.sign(v[:, 0].sum())
-        if (u > 1e-6 * np.abs(u).max()).all():
-            found = 1.0 / u
-            # shadows, highlights and quantisation bend the closed form on real photos: keep it only where the
-            # robust Lambertian fit under it explains the photos better than equal lamps do
-            if _lambertian_misfit(y, d, found, normal) < _lambertian_misfit(y, d, e, normal):
-                e = found
-    return e * level / e.mean()
-
-
-def _lambertian_misfit(y: np.ndarray, d: np.ndarray, e: np.ndarray, normal: np.ndarray) -> float:
-    """Median absolute residual / mean luminance of the robust Lambertian fit of ``y`` (K, P) under lights
-    ``d`` (K, 3) of irradiances ``e`` (K,) (overall scale free): how well those irradiances explain the photos."""
-    from matcap.refine.linear import solve_normals
-
-    s_lum = d * (e / e.mean())[:, None]
-    n, alb, solved = solve_normals(y, s_lum, normal)
-    if solved.sum() < 16:
-        return float("inf")
-    shading = np.clip(n[solved] @ s_lum.T, 0.0, None).T * alb[solved][None]
-    return float(np.median(np.abs(y[:, solved] - shading)) / max(float(y.mean()), 1e-12))
+    e = np.full(len(d), level)
+    for _ in range(rounds):
+        n, alb, solved = solve_normals(y, d * e[:, None], normal)
+        if solved.sum() < 16:
+            break
+        shading = np.clip((n[solved] @ d.T), 0.0, None).T * alb[solved][None]  # (K, P) per unit irradiance
+        lit = shading > 0.05 * np.maximum(shading.max(axis=1, keepdims=True), 1e-12)
+        num = (y[:, solved] * shading * lit).sum(1)
+        den = (shading ** 2 * lit).sum(1)
+        e = np.clip(np.where(den > 1e-12, num / np.maximum(den, 1e-12), e), 1e-6, None)
+        e *= level / e.mean()
+    return e
 
 
 def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: str, iters: int,
