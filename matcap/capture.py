@@ -702,6 +702,8 @@ def capture(
     else:  # the decision's sRGB prediction: the same call, made once
         maps = dataclasses.replace(maps, meta=dict(maps.meta))
     maps = maps.with_constants(constants)
+    if colour_decision is not None:  # its quick fits ran before the networks' timed call
+        maps.meta["timings"] = dict(maps.meta.get("timings", {}), colour_decision_s=colour_decision["seconds"])
     used = [cap.files[i] for i in maps.meta["images_used"]]
     refine_writer = None
     if refine:

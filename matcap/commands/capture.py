@@ -134,6 +134,7 @@ def run(args) -> int:
     t = maps.meta["timings"]
     print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "
           f"{'normal + BRDF' if maps.has_brdf else 'normal'} maps, {t['total_s']:.1f} s"
+          + (f" + colour decision {t['colour_decision_s']:.1f} s" if "colour_decision_s" in t else "")
           + (f" + refinement {t['refine_s']:.1f} s, re-render {maps.meta['refine']['psnr_db_mean']:.1f} dB"
              if "refine" in maps.meta else "") + ")")
     if relight:

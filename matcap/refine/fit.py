@@ -1021,6 +1021,7 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
         metal[full.rows, full.cols] = (px.metal() if s.fit_brdf else full.m0).cpu().numpy()
     obs_px = full.obs.cpu().numpy()
     err = pred - obs_px
+    err = np.where(full.sat.cpu().numpy() & (err > 0), 0.0, err)  # a clipped pixel only bounds the light from below
     residual = np.full((h, w), np.nan, np.float32)
     residual[full.rows, full.cols] = np.sqrt((err ** 2).mean(axis=(0, 2))) / 0.5
     psnr = []
