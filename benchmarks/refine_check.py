@@ -3,7 +3,7 @@
     python benchmarks/refine_check.py sphere              # ToyPS sphere vs its analytic normals (K=16, --linear)
     python benchmarks/refine_check.py uw [--max-side 256]  # UW captures without chrome: vs least squares with the
                                                            # true lights; light directions vs lights.txt; held-out
-    python benchmarks/refine_check.py synthetic [--scenes 8]  # /work/data/test128-like split: normal MAE, BRDF RMSE
+    python benchmarks/refine_check.py synthetic --data SPLIT  # a `matcap synth` split: normal MAE, BRDF RMSE
     python benchmarks/refine_check.py timing [--side 512]  # one fit at side^2, K=16: seconds, peak RSS (subprocess;
                                                            # --glossy: the slowest path, every look run)
     python benchmarks/refine_check.py dome                 # a glossy and a matte textured dome under 16 known
