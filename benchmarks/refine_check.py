@@ -432,7 +432,8 @@ def _env_photos(truth, lights=None, fixed: bool = False):
 
 
 def timing(args) -> None:
-    """One refine at side^2 with K=16 in a fresh subprocess: seconds and peak RSS (``--set`` applies)."""
+    """One refine at side^2 with K=16 in a fresh subprocess: seconds and peak RSS (``--set`` applies;
+    ``--given-lights``: the known-lights fit, given the photos' true directions)."""
     settings = json.dumps(dataclasses.asdict(_settings(args)))
     code = f"""
 import json, resource, time, numpy as np, torch
@@ -455,12 +456,16 @@ with T.no_grad():
     px = shade_directional(n, b, r, T.zeros(len(n)), L, T.full((k, 3), 2.5), T.zeros(1, 9, 3)).numpy()
 photos = np.zeros((k, side, side, 3), np.float32); photos[:, m] = px
 start = S.perturb(truth)
+known = None
+if {args.given_lights}:
+    from matcap.lightfiles import KnownLights
+    known = KnownLights(L.numpy().astype(float), None, "file", "timing", "order")
 rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 t0 = time.perf_counter()
-res = refine(list(photos), start, RefineSettings(**json.loads({settings!r})))
+res = refine(list(photos), start, RefineSettings(**json.loads({settings!r})), lights=known)
 lin = res.report["linear"] or {{}}
-path = ("first check: " + ("fitted" if lin.get("trusted") else "kept") if "check" not in lin else
-        lin["check"] + " look kept")
+path = ("known lights" if known is not None else "first check: " + ("fitted" if lin.get("trusted") else "kept")
+        if "check" not in lin else lin["check"] + " look kept")
 print(json.dumps({{"seconds": time.perf_counter() - t0, "pixels": int(m.sum()), "timings": res.report["timings"],
                   "path": path,
                   "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -487,7 +492,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-side", type=int, default=256, help="photo side for the UW rows (uw; default 256)")
     ap.add_argument("--data", help="synthetic split (synthetic): a folder written by `matcap synth`")
     ap.add_argument("--given-lights", action="store_true",
-                    help="synthetic: give the fit each directional scene's true lights (the known-lights fit)")
+                    help="synthetic, timing: give the fit the true lights (the known-lights fit)")
     ap.add_argument("--given-only", action="store_true",
                     help="synthetic, with --given-lights: only the scenes whose lights are given")
     ap.add_argument("--lights", metavar="txt|FILE",
