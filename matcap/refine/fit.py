@@ -244,6 +244,54 @@ def _downsample(stack: np.ndarray, mask: np.ndarray, arrays: dict[str, np.ndarra
     return small, m, out
 
 
+@dataclass
+class _Photos:
+    """The photos ready for the fit (:func:`_prepare`).
+
+    mask (H, W); obs (K, H, W, 3) photos in fit units (their mean over the mask is 0.5); scale: fit units per
+    photo unit; sat_level (K, 3) each photo's clipping level per channel in fit units (inf for a black channel);
+    arrays: the networks' maps as "normal", "base", "rough", "metal"; variation (H, W) light variation (NaN
+    off-mask); weak_fraction and warning: its diagnostic (:func:`variation_warning`); weight (H, W) per-pixel
+    data weight (weakly lit pixels weigh less, down to 0.1)."""
+
+    mask: np.ndarray
+    obs: np.ndarray
+    scale: float
+    sat_level: np.ndarray
+    arrays: dict[str, np.ndarray]
+    variation: np.ndarray
+    weak_fraction: float
+    warning: str | None
+    weight: np.ndarray
+
+    def light_copy(self, side: int):
+        """((h, w), (obs, mask, arrays, weight)) of the copy the light fit runs on: longer side at most ``side``
+        pixels (these arrays themselves where they are no larger)."""
+        h, w = self.mask.shape
+        f = min(1.0, side / max(h, w))
+        hw = (max(8, round(h * f)), max(8, round(w * f)))
+        if hw == (h, w):
+            return hw, (self.obs, self.mask, self.arrays, self.weight)
+        return hw, (*_downsample(self.obs, self.mask, self.arrays, hw), _resize(self.weight, hw))
+
+
+def _prepare(images, maps: MaterialMaps, s: RefineSettings) -> _Photos:
+    """The first stage of the fit: the photos checked (:func:`check_inputs`, the maps' size), scaled to fit units,
+    their clipping levels and light variation measured."""
+    mask = np.asarray(maps.mask, bool)
+    stack = check_inputs(images, mask)
+    if stack.shape[1:3] != maps.shape:
+        raise MatcapError(f"photos are {stack.shape[2]}x{stack.shape[1]} but the maps {maps.shape[1]}x{maps.shape[0]}")
+    scale = 0.5 / float(stack[:, mask].mean())
+    obs = stack * scale
+    sat_level = np.array([o[mask].max(axis=0) * 0.999 for o in obs], np.float32)
+    sat_level = np.where(sat_level > 0, sat_level, np.inf).astype(np.float32)
+    variation = light_variation(stack, mask)
+    frac_weak, warning = variation_warning(variation, mask, s.variation_threshold)
+    weight = np.clip(np.nan_to_num(variation) / s.variation_threshold, 0.1, 1.0).astype(np.float32)
+    return _Photos(mask, obs, scale, sat_level, _maps_arrays(maps), variation, frac_weak, warning, weight)
+
+
 class _Problem:
     """Observations of N pixels: obs (K, N, 3), weight (N,), saturation flags, positions, priors (torch)."""
 
@@ -566,36 +614,20 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     so nothing is gated: the maps are always the fitted ones.
     """
     t_start = time.perf_counter()
-    mask = np.asarray(maps.mask, bool)
-    stack = check_inputs(images, mask)
-    if stack.shape[1:3] != maps.shape:
-        raise MatcapError(f"photos are {stack.shape[2]}x{stack.shape[1]} but the maps {maps.shape[1]}x{maps.shape[0]}")
-    k_count, h, w = stack.shape[:3]
+    ph = _prepare(images, maps, s)
+    mask, obs, scale, sat_level, arrays, weight = ph.mask, ph.obs, ph.scale, ph.sat_level, ph.arrays, ph.weight
+    k_count, h, w = obs.shape[:3]
     if len(known) != k_count:
         raise MatcapError(f"{len(known)} known lights for {k_count} photos")
     device = torch.device(s.device)
     torch.manual_seed(s.seed)
     rng = np.random.default_rng(s.seed)
-    scale = 0.5 / float(stack[:, mask].mean())
-    obs = stack * scale
-    sat_level = np.array([obs[k][mask].max(axis=0) * 0.999 for k in range(k_count)], np.float32)
-    sat_level = np.where(sat_level > 0, sat_level, np.inf).astype(np.float32)
-    arrays = _maps_arrays(maps)
-    variation = light_variation(stack, mask)
-    frac_weak, warning = variation_warning(variation, mask, s.variation_threshold)
-    weight = np.clip(np.nan_to_num(variation) / s.variation_threshold, 0.1, 1.0).astype(np.float32)
     bar = _Bar(progress, s, total=0)
     timings: dict[str, float] = {}
 
     # ---- 1. lights: intensities and ambient for the given directions
     t0 = time.perf_counter()
-    f = min(1.0, s.light_side / max(h, w))
-    hw_l = (max(8, round(h * f)), max(8, round(w * f)))
-    if hw_l == (h, w):
-        obs_l, mask_l, arr_l, w_l = obs, mask, arrays, weight
-    else:
-        obs_l, mask_l, arr_l = _downsample(obs, mask, arrays, hw_l)
-        w_l = _resize(weight, hw_l)
+    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.light_side)
     centre = _centre(torch, mask).numpy().astype(np.float64)
     directions = np.asarray(known.directions, np.float64)
     inv_distance = None
@@ -652,8 +684,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(out.normal_change_deg, 3),
-        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(frac_weak, 4),
-                            "warning": warning},
+        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(ph.weak_fraction, 4),
+                            "warning": ph.warning},
         "photo_scale": scale,
         "linear": None,
         "kept_network_maps": False,
@@ -661,7 +693,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
-    return RefineResult(out.maps, lights_to_entries(lights, scale), report, out.residual, variation, warning,
+    return RefineResult(out.maps, lights_to_entries(lights, scale), report, out.residual, ph.variation, ph.warning,
                         out.prediction)
 
 
@@ -788,23 +820,12 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     if s.light_model not in ("directional", "point"):
         raise MatcapError(f"light model must be 'directional' or 'point', got {s.light_model!r}")
     t_start = time.perf_counter()
-    mask = np.asarray(maps.mask, bool)
-    stack = check_inputs(images, mask)
-    if stack.shape[1:3] != maps.shape:
-        raise MatcapError(f"photos are {stack.shape[2]}x{stack.shape[1]} but the maps {maps.shape[1]}x{maps.shape[0]}")
+    ph = _prepare(images, maps, s)
+    mask, obs, scale, sat_level, arrays, weight = ph.mask, ph.obs, ph.scale, ph.sat_level, ph.arrays, ph.weight
     device = torch.device(s.device)
     torch.manual_seed(s.seed)
     rng = np.random.default_rng(s.seed)
-    k_count, h, w = stack.shape[:3]
-
-    scale = 0.5 / float(stack[:, mask].mean())
-    obs = stack * scale
-    sat_level = np.array([obs[k][mask].max(axis=0) * 0.999 for k in range(k_count)], np.float32)
-    sat_level = np.where(sat_level > 0, sat_level, np.inf).astype(np.float32)
-    arrays = _maps_arrays(maps)
-    variation = light_variation(stack, mask)
-    frac_weak, warning = variation_warning(variation, mask, s.variation_threshold)
-    weight = np.clip(np.nan_to_num(variation) / s.variation_threshold, 0.1, 1.0).astype(np.float32)
+    k_count, h, w = obs.shape[:3]
     c = s.cauchy
 
     bar = _Bar(progress, s, near)
@@ -812,13 +833,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
 
     # ---- 1. lights on a downsampled subsample, jointly with those pixels' maps
     t0 = time.perf_counter()
-    f = min(1.0, s.light_side / max(h, w))
-    hw_l = (max(8, round(h * f)), max(8, round(w * f)))
-    if hw_l == (h, w):
-        obs_l, mask_l, arr_l, w_l = obs, mask, arrays, weight
-    else:
-        obs_l, mask_l, arr_l = _downsample(obs, mask, arrays, hw_l)
-        w_l = _resize(weight, hw_l)
+    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.light_side)
     n_l = int(mask_l.sum())
     idx = np.sort(rng.choice(n_l, size=min(n_l, s.light_pixels), replace=False))
     start = start_l = None
@@ -932,8 +947,8 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(out.normal_change_deg, 3),
-        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(frac_weak, 4),
-                            "warning": warning},
+        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(ph.weak_fraction, 4),
+                            "warning": ph.warning},
         "photo_scale": scale,
         "linear": None if linear_report is None else {**linear_report, **({} if linear is None else {
             "contour_pixels": linear.contour_pixels, "residual": round(linear.residual, 4),
@@ -945,7 +960,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
-    return RefineResult(refined, light_entries, report, residual, variation, warning, prediction)
+    return RefineResult(refined, light_entries, report, residual, ph.variation, ph.warning, prediction)
 
 
 def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: RefineSettings, bar,
