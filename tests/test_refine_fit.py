@@ -44,11 +44,7 @@ def test_recovers_normals_lights_and_glossy_roughness(scene, fitted):
     assert np.median(errs) < 3.0 and max(errs) < 5.0, errs
     # roughness where the photos show the glossy material's highlight (elsewhere it is not observable)
     gloss = m & (truth.roughness < 0.5)
-    n = truth.normal[gloss]
-    seen = np.zeros(len(n), bool)
-    for l in lights:
-        h = np.asarray(l.direction) + (0, 0, 1)
-        seen |= n @ (h / np.linalg.norm(h)) > np.cos(np.radians(6))
+    seen = S.highlighted(truth.normal[gloss], lights, 6.0)
     assert seen.sum() > 30
     r_err = np.abs(res.maps.roughness[gloss] - truth.roughness[gloss])[seen].mean()
     r_start = np.abs(start.roughness[gloss] - truth.roughness[gloss])[seen].mean()

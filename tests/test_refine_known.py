@@ -40,11 +40,7 @@ def test_known_lights_recover_a_glossy_sphere(glossy):
     after = angular_error_map(res.maps.normal, truth.normal, m)[m].mean()
     assert before > 5.0 and after < 1.5, (before, after)
     # roughness where a highlight shows it (elsewhere the photos cannot tell it)
-    n = truth.normal[m]
-    seen = np.zeros(len(n), bool)
-    for l in lights:
-        h = np.asarray(l.direction) + (0, 0, 1)
-        seen |= n @ (h / np.linalg.norm(h)) > np.cos(np.radians(6))
+    seen = S.highlighted(truth.normal[m], lights, 6.0)
     assert seen.sum() > 100
     r_err = np.abs(res.maps.roughness[m] - truth.roughness[m])[seen].mean()
     assert r_err < 0.05, r_err

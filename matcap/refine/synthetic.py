@@ -122,6 +122,16 @@ def known_lights(count: int = 12, seed: int = 3, max_angle_deg: float = 55.0, ki
     return out
 
 
+def highlighted(normal: np.ndarray, lights, within_deg: float = 6.0) -> np.ndarray:
+    """(N,) bool: the normals ``normal`` (N, 3) within ``within_deg`` of some light's half vector (seen along +z),
+    where a highlight shows the roughness; ``lights``: objects with a ``direction``."""
+    seen = np.zeros(len(normal), bool)
+    for light in lights:
+        h = np.asarray(light.direction, np.float64) + (0.0, 0.0, 1.0)
+        seen |= normal @ (h / np.linalg.norm(h)) > np.cos(np.radians(within_deg))
+    return seen
+
+
 def render_capture(maps: MaterialMaps, lights, ambient: float = 0.05, spp: int = 32, seed: int = 0):
     """K (H, W, 3) float32 linear photos of ``maps``: each light plus a uniform environment of radiance ``ambient``."""
     from renderers.relight import render
