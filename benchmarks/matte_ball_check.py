@@ -14,7 +14,6 @@ error against the true lamps (median / max degrees), re-render PSNR, the check.
 from __future__ import annotations
 
 import argparse
-import ast
 import sys
 import tempfile
 import time
@@ -26,30 +25,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from matcap.refine.synthetic import matte_ball  # noqa: E402
+from refine_check import _angle, _mean_err  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
+from refine_check import _settings as refine_settings  # noqa: E402
 
 
 def _settings(items):
-    from matcap.refine import RefineSettings
-
-    over = {}
-    for item in items or []:
-        key, _, text = item.partition("=")
-        try:
-            over[key] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            over[key] = text
-    return RefineSettings(seed=0, **over)
-
-
-def _angle(a, b) -> float:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
-
-
-def _mean_err(n, gt, m) -> float:
-    from matcap.evaluation.metrics import angular_error_map
-
-    return float(angular_error_map(n, gt, m)[m].mean())
+    """RefineSettings(seed=0) with ``--set KEY=VALUE`` overrides, as refine_check.py reads them."""
+    return refine_settings(argparse.Namespace(set=items))
 
 
 def run_ball(folder: Path, models, settings, true_dirs=None, cache: Path | None = None) -> dict:
