@@ -731,11 +731,12 @@ def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.n
 
 
 def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: str, iters: int,
-                directions_free: bool = True, maps_free: bool = True, relative_to=None):
+                directions_free: bool = True, maps_free: bool = True, relative_to=None, count: bool = True):
     """Adam on the lights (and, with ``maps_free``, the subsample's maps, anchored by the prior) under the full
     loss :func:`_loss` of the pixels ``prob``. ``directions_free`` False holds the directions (and a near lamp's
-    distance); ``relative_to`` (K, 3) log intensities: only one overall log scale per channel moves. Returns
-    (lights, the last step's mean data term)."""
+    distance); ``relative_to`` (K, 3) log intensities: only one overall log scale per channel moves; ``count``:
+    add the steps to the progress total (False where the caller planned them). Returns (lights, a copy without
+    gradients; the last step's mean data term)."""
     from matcap.refine.model import PixelParams
 
     px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
@@ -756,7 +757,9 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
             t.requires_grad_(True)
     opt = torch.optim.Adam(groups)
     data_mean = float("nan")
-    bar.add_total(iters)
+    if count:
+        bar.add_total(iters)
+    near = directions_free and lights.kind == "near"
     for _ in range(iters):
         opt.zero_grad()
         if offset is not None:
@@ -765,6 +768,10 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
         loss = per.mean()
         loss.backward()
         opt.step()
+        if near:  # a negative inverse distance, or a direction behind the framing plane, would put the lamp where
+            with torch.no_grad():  # it lights nothing the camera sees
+                lights.inv_distance.clamp_(min=0.0)
+                lights.vec[:, 2].clamp_(min=1e-3)
         data_mean = float(data.detach().mean())
         bar.step(label, float(loss.detach()))
     if offset is not None:
@@ -826,7 +833,6 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     torch.manual_seed(s.seed)
     rng = np.random.default_rng(s.seed)
     k_count, h, w = obs.shape[:3]
-    c = s.cauchy
 
     bar = _Bar(progress, s, near)
     timings: dict[str, float] = {}
@@ -864,47 +870,19 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
             arr_l = dict(arr_l, normal=start_l)
     prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
     lights = _init_lights(torch, prob, s, device, linear.directions if linear is not None and trusted else None)
-    from matcap.refine.model import PixelParams
 
-    last = {}  # the data term of joint()'s last step
-
-    def joint(lights, iters, label, prob=prob, px=None):
-        if px is None:
-            px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
-        light_t = [lights.vec, lights.log_intensity] + ([lights.sh] if s.ambient != "none" else [])
-        light_t += [lights.inv_distance] if lights.kind == "near" else []
-        groups = [{"params": light_t, "lr": s.lr_light}]
-        if trusted:  # kept maps: the lights are fitted to them as they are
-            groups.append({"params": px.tensors(), "lr": s.lr_pixel})
-        for g in groups:
-            for t in g["params"]:
-                t.requires_grad_(True)
-        opt = torch.optim.Adam(groups)
-        for it in range(iters):
-            opt.zero_grad()
-            per, data = _loss(torch, prob, px, lights, s, c, s.fit_brdf)
-            loss = per.mean()
-            loss.backward()
-            opt.step()
-            if lights.kind == "near":  # a negative inverse distance, or a direction behind the framing plane,
-                with torch.no_grad():  # would put the lamp where it lights nothing the camera sees
-                    lights.inv_distance.clamp_(min=0.0)
-                    lights.vec[:, 2].clamp_(min=1e-3)
-            last["data"] = float(data.detach().mean())
-            bar.step(label, float(loss.detach()))
-        for t in lights.tensors():
-            t.requires_grad_(False)
-        return lights
+    def joint(lights, iters, label):  # kept maps: the lights are fitted to them as they are
+        return _fit_lights(torch, prob, lights, s, bar, label, iters, maps_free=trusted, count=False)
 
     light_iters = s.light_iters if trusted else s.kept_light_iters
     compare = near and gate and s.light_model != "point"  # the near-lamp check's loss ratio needs the distant run
     bar.add_total(light_iters - s.light_iters + (s.light_iters if compare else 0))
-    lights = joint(lights, light_iters, "lights")
+    lights, _ = joint(lights, light_iters, "lights")
     near_found = dist = None
     if near:  # the lamps' distances, from the distant solution
         distant_lights = lights
-        lights = joint(_to_near(torch, lights, _centre(torch, mask).to(device)), s.light_iters, "point lights")
-        near_data = last["data"]
+        lights, near_data = joint(_to_near(torch, lights, _centre(torch, mask).to(device)), s.light_iters,
+                                  "point lights")
         dist = _median_distance(lights)
         if gate:
             with torch.no_grad():
@@ -913,8 +891,8 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
                           "light_distance_radii": None if dist is None else round(dist / _object_radius(mask), 2),
                           "loss_ratio": None, "solved_fraction": (linear_report or {}).get("solved_fraction")}
             if compare and _needs_loss_ratio(near_found, s):  # as many more steps with the lamps kept distant:
-                joint(distant_lights.detached(), s.light_iters, "distant lights")  # what the distances gain
-                near_found["loss_ratio"] = round(near_data / max(last["data"], 1e-12), 4)
+                _, distant_data = joint(distant_lights.detached(), s.light_iters, "distant lights")  # their gain
+                near_found["loss_ratio"] = round(near_data / max(distant_data, 1e-12), 4)
             elif compare:
                 bar.add_total(-s.light_iters)
             why = _near_verdict(near_found, s)
