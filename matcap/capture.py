@@ -20,6 +20,7 @@ import numpy as np
 
 from matcap import imageio
 from matcap.errors import MatcapError
+from matcap.lightfiles import natural_key
 from scenes.materialmaps import MaterialMaps, check_constant
 
 #: Files in a capture folder that are not photos: masks and ground-truth maps.
@@ -51,10 +52,6 @@ class Capture:
     skipped: list[str] = field(default_factory=list)
     photo_size_wh: tuple[int, int] | None = None  # (W, H) of the photos as stored (before --max-side)
     picked: list[int] = field(default_factory=list)  # indices of ``files`` among the folder's photos (--max-images)
-
-
-def _natural_key(name: str):
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
 
 
 def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
@@ -165,7 +162,7 @@ def pick_images(n: int, max_images: int | None, seed: int) -> np.ndarray:
 def _scan(folder: Path) -> tuple[list[Path], list[str], Path | None]:
     """(photos in natural file-name order, names skipped, the mask file or None) of a capture folder."""
     photos, skipped, found_mask = [], [], None
-    for p in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name)):
+    for p in sorted(folder.iterdir(), key=lambda p: natural_key(p.name)):
         if not p.is_file() or p.suffix.lower() not in imageio.IMAGE_SUFFIXES or p.name.startswith("."):
             continue
         stem = p.name[: -len(p.suffix)]

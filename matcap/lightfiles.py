@@ -19,7 +19,6 @@ a light behind the object's plane) is one :class:`MatcapError` line naming the f
 """
 from __future__ import annotations
 
-import json
 import os
 import re
 from dataclasses import dataclass
@@ -277,10 +276,7 @@ def read_light_file(path: str | os.PathLike, photos: Sequence[str], source: str 
     suffix = p.suffix.lower()
     what = "line"
     if suffix == ".json":
-        try:
-            rows, found_source = _read_json(p)
-        except json.JSONDecodeError as e:
-            raise MatcapError(f"{p.name}: not valid JSON ({e.msg}, line {e.lineno})") from None
+        rows, found_source = _read_json(p)  # lightfile.read_lights words every problem in one line
         what = "entry"
     elif suffix == ".lp":
         rows, found_source = _read_lp(p), "file"
