@@ -67,3 +67,44 @@ def test_near_lights_span_distant_and_point_lights():
     assert np.allclose(entries[0]["intensity"], [0.5, 1.0, 1.5])
     assert entries[1]["kind"] == "point" and np.allclose(entries[1]["position"], (centre + 4 * d[1]).numpy())
     assert np.allclose(entries[1]["intensity"], [0.25 * 16] * 3, rtol=1e-5)
+
+
+def test_closed_form_jacobian_equals_forward_mode_autodiff():
+    """shade_jacobian's derivatives (normal along tangents, base colour per channel, roughness, metallic) against
+    torch.func.jvp of shade_fast, for distant lights (K, 1, 3) and per-pixel ones (K, N, 3)."""
+    from matcap.refine.model import shade_fast, shade_jacobian
+
+    g = torch.Generator().manual_seed(1)
+    dt = torch.float64
+    n_px, k = 300, 5
+    n = torch.randn(n_px, 3, generator=g, dtype=dt)
+    n[:, 2] = n[:, 2].abs() + 0.3
+    n = n / n.norm(dim=-1, keepdim=True)
+    base = torch.rand(n_px, 3, generator=g, dtype=dt)
+    rough = torch.rand(n_px, generator=g, dtype=dt) * 0.9 + 0.05
+    metal = torch.rand(n_px, generator=g, dtype=dt)
+    sh = torch.randn(1, 9, 3, generator=g, dtype=dt) * 0.1
+    tangents = torch.randn(2, n_px, 3, generator=g, dtype=dt)
+    for m in (1, n_px):
+        wo = torch.randn(k, m, 3, generator=g, dtype=dt)
+        wo[..., 2] = wo[..., 2].abs() + 0.2
+        wo = wo / wo.norm(dim=-1, keepdim=True)
+        irr = torch.rand(k, m, 3, generator=g, dtype=dt) + 0.5
+        pred, d_n, d_b, d_r, d_m = shade_jacobian(n, base, rough, metal, wo, irr, sh, tangents)
+        assert torch.allclose(pred, shade(n, base, rough, metal, wo, irr, sh), rtol=1e-9, atol=1e-12)
+
+        def along(tn, tb, tr, tm):
+            f = lambda *x: shade_fast(*x, wo, irr, sh)  # noqa: E731
+            return torch.func.jvp(f, (n, base, rough, metal), (tn, tb, tr, tm))[1]
+
+        zn, zb, z = torch.zeros_like(n), torch.zeros_like(base), torch.zeros_like(rough)
+        for i in range(2):
+            assert torch.allclose(d_n[i], along(tangents[i], zb, z, z), rtol=1e-9, atol=1e-9)
+        assert torch.allclose(d_r, along(zn, zb, torch.ones_like(rough), z), rtol=1e-9, atol=1e-9)
+        assert torch.allclose(d_m, along(zn, zb, z, torch.ones_like(metal)), rtol=1e-9, atol=1e-9)
+        for c in range(3):
+            tb = zb.clone()
+            tb[:, c] = 1.0
+            ref = along(zn, tb, z, z)
+            assert torch.allclose(d_b[..., c], ref[..., c], rtol=1e-9, atol=1e-9)
+            assert ref[..., [j for j in range(3) if j != c]].abs().max() == 0

@@ -353,12 +353,10 @@ def _loss(torch, prob: _Problem, px, lights, s: RefineSettings, c: float, brdf: 
 
 
 def _shade(lights, pos, n, b, r, m):
-    from matcap.refine.model import shade, shade_directional
+    from matcap.refine.model import shade_fast
 
-    if lights.kind == "directional":
-        return shade_directional(n, b, r, m, lights.directions(), lights.log_intensity.exp(), lights.sh)
     wo, irr = lights.incident(pos)
-    return shade(n, b, r, m, wo, irr, lights.sh)
+    return shade_fast(n, b, r, m, wo, irr, lights.sh)
 
 
 def _luminance(obs, rows, cols) -> np.ndarray:
@@ -1085,7 +1083,7 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
     """:func:`matcap.refine.solve.levenberg_marquardt` on :func:`_loss` of the pixels ``part``: the same data
     term (Cauchy, clipped highlights a lower bound only, weighted per pixel and averaged over the colour
     channels) and the same priors, as residuals. ``start``: the four :class:`PixelParams` tensors; returns them."""
-    from matcap.refine.model import PixelParams
+    from matcap.refine.model import PixelParams, shade_jacobian
     from matcap.refine.solve import levenberg_marquardt
 
     grad, base_logit, rough_logit, metal_logit = start
@@ -1095,28 +1093,62 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
     roots = [math.sqrt(s.prior_normal), math.sqrt(s.prior_base / 3.0), math.sqrt(s.prior_rough),
              math.sqrt(s.prior_metal)]
 
-    def residuals(t, rows):
+    def pixels(t, rows):
         sub = part if len(rows) == n else part.take(rows)
         rl, ml = (t[:, 5], t[:, 6]) if brdf else (rough_logit[rows], metal_logit[rows])
         px = PixelParams(t[:, 0:2], t[:, 2:5], rl, ml)
-        nrm, b = px.normal(), px.base()
-        r = px.rough() if brdf else sub.r0
-        m = px.metal() if brdf else sub.m0
-        res = _shade(lights, sub.pos, nrm, b, r, m) - sub.obs
-        res = torch.where(sub.sat & (res > 0), torch.zeros_like(res), res)
+        return sub, px, px.normal(), px.base(), px.rough() if brdf else sub.r0, px.metal() if brdf else sub.m0
+
+    def priors(sub, nrm, b, r, m):
         prior = [roots[0] * (nrm - sub.n0), roots[1] * (torch.log(b + 0.02) - torch.log(sub.b0 + 0.02))]
         if brdf:
             prior += [roots[2] * (r - sub.r0)[:, None], roots[3] * (m - sub.m0)[:, None]]
-        return res.permute(1, 0, 2).reshape(len(t), -1), torch.cat(prior, 1)
+        return torch.cat(prior, 1)
 
-    k = part.obs.shape[0]
+    def residuals(t, rows):
+        sub, _, nrm, b, r, m = pixels(t, rows)
+        res = _shade(lights, sub.pos, nrm, b, r, m) - sub.obs
+        res = torch.where(sub.sat & (res > 0), torch.zeros_like(res), res)
+        return res.permute(1, 0, 2).reshape(len(t), -1), priors(sub, nrm, b, r, m)
+
+    def jacobian(t, rows):
+        sub, px, nrm, b, r, m = pixels(t, rows)
+        count = len(t)
+        # the unit normal's derivatives by its gradient parameters: (e_x - n n_x) / |v|, (e_y - n n_y) / |v|
+        size = torch.cat([px.grad, torch.ones_like(px.grad[:, :1])], 1).norm(dim=-1, keepdim=True)
+        axes = torch.eye(3, dtype=t.dtype, device=t.device)[:2, None, :]
+        tangents = (axes - nrm[None] * nrm.T[:2, :, None]) / size[None]
+        wo, irr = lights.incident(sub.pos)
+        pred, d_n, d_b, d_r, d_m = shade_jacobian(nrm, b, r, m, wo, irr, lights.sh, tangents)
+        res = pred - sub.obs
+        free = ~(sub.sat & (res > 0))  # a clipped observation the model exceeds: zero residual, no derivative
+        zero = torch.zeros((), dtype=t.dtype, device=t.device)
+        flat = lambda x: torch.where(free, x, zero).permute(1, 0, 2).reshape(count, -1)  # noqa: E731
+        robust = flat(res)
+        q = priors(sub, nrm, b, r, m)
+        q_width = q.shape[1]
+        jr = [flat(d_n[0]), flat(d_n[1])]
+        jq = [torch.cat([roots[0] * tangents[i], t.new_zeros(count, q_width - 3)], 1) for i in range(2)]
+        sb = b * (1.0 - b)  # sigmoid's derivative
+        d_b = d_b * sb[None]
+        for c in range(3):
+            jr.append(flat(torch.where(channel == c, d_b, zero)))
+            col = t.new_zeros(count, q_width)
+            col[:, 3 + c] = roots[1] * sb[:, c] / (b[:, c] + 0.02)
+            jq.append(col)
+        if brdf:
+            for i, (d, v) in enumerate(((d_r, r), (d_m, m))):
+                sv = v * (1.0 - v)
+                jr.append(flat(d * sv[None, :, None]))
+                col = t.new_zeros(count, q_width)
+                col[:, 6 + i] = roots[2 + i] * sv
+                jq.append(col)
+        return robust, q, jr, jq
+
     dev = theta.device
     channel = torch.arange(3, device=dev)
-    # base colour channel c moves only the photos' channel c and its own prior entry: one tangent for all three
-    shared = ([2, 3, 4], channel.repeat(k), torch.cat([torch.full((3,), -1, device=dev), channel,
-                                                      torch.full((2 if brdf else 0,), -1, device=dev)]))
-    theta = levenberg_marquardt(residuals, theta, part.weight / 3.0, c, iters, on_step=on_step, shared=shared,
-                                tol=s.pixel_tol)
+    theta = levenberg_marquardt(residuals, theta, part.weight / 3.0, c, iters, on_step=on_step, tol=s.pixel_tol,
+                                jacobian=jacobian)
     out = [theta[:, 0:2], theta[:, 2:5]]
     out += [theta[:, 5], theta[:, 6]] if brdf else [rough_logit, metal_logit]
     return [t.contiguous() for t in out]

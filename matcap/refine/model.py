@@ -39,12 +39,7 @@ def sh_irradiance(n: torch.Tensor, sh: torch.Tensor) -> torch.Tensor:
     """Irradiance from an SH radiance: n (N, 3), sh (K, 9, 3) -> (K, N, 3) (K may be 1)."""
     # elementwise on purpose (no BLAS): matrix products may round differently from run to run (MKL takes other
     # code paths for differently aligned buffers), and the fit must be bit-for-bit repeatable for a seed
-    basis = sh_basis(n)
-    out = None
-    for j in range(9):
-        term = basis[None, :, j, None] * (SH_A[j] * sh[:, j])[:, None, :]
-        out = term if out is None else out + term
-    return out
+    return _sh_sum(sh_basis(n), sh)
 
 
 def plane_positions(rows: torch.Tensor, cols: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -158,35 +153,85 @@ def shade(normal, base, rough, metal, wo, irradiance, sh) -> torch.Tensor:
 
 
 def _dots(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(K, 3) x (N, 3) -> (K, N) dot products, elementwise (repeatable, unlike BLAS; see :func:`sh_irradiance`)."""
-    return a[:, None, 0] * b[None, :, 0] + a[:, None, 1] * b[None, :, 1] + a[:, None, 2] * b[None, :, 2]
+    """(K, M, 3) x (N, 3) -> (K, N) dot products (M = 1 or N), elementwise (repeatable, unlike BLAS; see
+    :func:`sh_irradiance`)."""
+    b = b[None]
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
 def shade_directional(normal, base, rough, metal, directions, irradiance, sh, specular: float = 0.5) -> torch.Tensor:
-    """:func:`shade` for directional lights seen along +z, with everything that depends only on the light
-    (half vector, Fresnel of the dielectric, the light's terms of the bump shadowing) computed once per photo:
-    the same numbers as ``principled_eval`` (tests/test_refine_model.py) at about a third of the work.
+    """:func:`shade` for directional lights: :func:`shade_fast` with directions (K, 3) unit and irradiance (K, 3)."""
+    return shade_fast(normal, base, rough, metal, directions[:, None, :], irradiance[:, None, :], sh, specular)
 
-    normal (N, 3); base (N, 3); rough, metal (N,); directions (K, 3) unit; irradiance (K, 3); sh (K|1, 9, 3).
+
+def shade_fast(normal, base, rough, metal, wo, irradiance, sh, specular: float = 0.5) -> torch.Tensor:
+    """:func:`shade` seen along +z for normals facing the camera (n_z > 0, so normalmap never flips them), with
+    everything that depends only on the light (half vector, Fresnel of the dielectric, the light's terms of the bump
+    shadowing) computed at the light's own shape: the same numbers as ``principled_eval``
+    (tests/test_refine_model.py) at about a third of the work for directional lights.
+
+    normal (N, 3) unit; base (N, 3); rough, metal (N,); wo / irradiance (K, N|1, 3); sh (K|1, 9, 3).
     """
+    return _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, None)[0]
+
+
+def shade_jacobian(normal, base, rough, metal, wo, irradiance, sh, tangents, specular: float = 0.5):
+    """:func:`shade_fast` and its derivatives, in closed form (the per-pixel solve's Jacobian).
+
+    tangents (T, N, 3): directions in which the normal moves (e.g. the derivatives of a unit normal by its free
+    parameters). Returns (pred (K, N, 3), d_normal (T, K, N, 3): pred's derivative along each tangent, d_base
+    (K, N, 3): channel c's derivative by base colour c (the others' is 0), d_rough (K, N, 3), d_metal (K, N, 3)).
+    """
+    return _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, tangents)
+
+
+def _schlick_d(c: torch.Tensor) -> torch.Tensor:
+    """Derivative of ``bsdf._schlick_weight`` (c in [0, 1])."""
+    m = (1.0 - c).clamp(0.0, 1.0)
+    m2 = m * m
+    return -5.0 * m2 * m2
+
+
+def _sh_basis_d(n: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Derivative of :func:`sh_basis` at unit vectors n (..., 3) along t (..., 3) -> (..., 9)."""
+    x, y, z = n.unbind(-1)
+    tx, ty, tz = t.unbind(-1)
+    return torch.stack(
+        [torch.zeros_like(tx), SH_C1 * ty, SH_C1 * tz, SH_C1 * tx, SH_C2 * (tx * y + x * ty),
+         SH_C2 * (ty * z + y * tz), SH_C3 * 6.0 * z * tz, SH_C2 * (tx * z + x * tz),
+         SH_C4 * 2.0 * (x * tx - y * ty)], dim=-1)
+
+
+def _sh_sum(basis: torch.Tensor, sh: torch.Tensor) -> torch.Tensor:
+    """sum_j A_j sh_j basis_j: basis (..., N, 9), sh (K, 9, 3) -> (..., K, N, 3), elementwise (see
+    :func:`sh_irradiance`)."""
+    out = None
+    for j in range(9):
+        term = basis[..., None, :, j, None] * (SH_A[j] * sh[:, j])[:, None, :]
+        out = term if out is None else out + term
+    return out
+
+
+def _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, tangents):
     from matcap.refine import bsdf as B
 
     eta = 2.0 / (1.0 - math.sqrt(0.08 * specular)) - 1.0
-    l = directions
+    l = wo  # (K, M, 3), M = 1 (directional) or N
     h = l + torch.tensor([0.0, 0.0, 1.0], dtype=l.dtype, device=l.device)
     h = h / h.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-    cos_d = (h * l).sum(-1).clamp(0.0, 1.0)  # (K,)
+    cos_d = (h * l).sum(-1).clamp(0.0, 1.0)  # (K, M)
     w_d = B._schlick_weight(cos_d)
     f_die = B._fresnel_dielectric(cos_d, eta)
-    lz = l[:, 2].clamp(min=1e-6)
-    tan2_l = (1.0 - lz * lz) / (lz * lz)  # (K,)
+    lz = l[..., 2].clamp(min=1e-6)
+    tan2_l = (1.0 - lz * lz) / (lz * lz)  # (K, M)
     # per pixel
     ci = normal[:, 2].clamp(min=1e-6)
     fi = B._schlick_weight(ci)
     alpha = (rough * rough).clamp(min=1e-3)
     a2 = alpha * alpha
     tan2_i = (1.0 - ci * ci) / (ci * ci)
-    g_i = 2.0 / (1.0 + (1.0 + a2 * tan2_i).sqrt())
+    sq_i = (1.0 + a2 * tan2_i).sqrt()
+    g_i = 2.0 / (1.0 + sq_i)
     bump_a2 = (0.125 * tan2_i).clamp(0.0, 1.0)
     # per photo and pixel (K, N)
     co_raw = _dots(l, normal)
@@ -194,22 +239,86 @@ def shade_directional(normal, base, rough, metal, directions, irradiance, sh, sp
     co = co_raw.clamp(min=1e-6)
     ch = ch_raw.clamp(min=1e-6)
     fo = B._schlick_weight(co)
-    rr = 2.0 * rough[None] * (cos_d * cos_d)[:, None]
-    diff = (1.0 - 0.5 * fi)[None] * (1.0 - 0.5 * fo) + rr * (fo + fi[None] + fo * fi[None] * (rr - 1.0))
-    diff = diff * co * ((1.0 - metal) / math.pi)[None]
+    rr = 2.0 * rough[None] * (cos_d * cos_d)
+    diff_shape = (1.0 - 0.5 * fi)[None] * (1.0 - 0.5 * fo) + rr * (fo + fi[None] + fo * fi[None] * (rr - 1.0))
+    dielectric = ((1.0 - metal) / math.pi)[None]
+    diff = diff_shape * co * dielectric
     denom = ch * ch * (a2[None] - 1.0) + 1.0
     d = a2[None] / (math.pi * denom * denom)
     tan2_o = (1.0 - co * co) / (co * co)
-    g_o = 2.0 / (1.0 + (1.0 + a2[None] * tan2_o).sqrt())
-    spec = d * (g_i / (4.0 * ci))[None] * g_o
-    bump = 2.0 / (1.0 + (1.0 + bump_a2[None] * tan2_l[:, None]).sqrt())
-    valid = (co_raw > 1e-6) & (ch_raw > 0) & (normal[:, 2] > 1e-6)[None] & (l[:, 2] > 0)[:, None]
+    sq_o = (1.0 + a2[None] * tan2_o).sqrt()
+    g_o = 2.0 / (1.0 + sq_o)
+    gi4 = (g_i / (4.0 * ci))[None]
+    spec = d * gi4 * g_o
+    sq_b = (1.0 + bump_a2[None] * tan2_l).sqrt()
+    bump = 2.0 / (1.0 + sq_b)
+    valid = (co_raw > 1e-6) & (ch_raw > 0) & (normal[:, 2] > 1e-6)[None] & (l[..., 2] > 0)
     zero = torch.zeros((), dtype=co.dtype, device=co.device)
-    diff = torch.where(valid, diff * bump, zero)
-    spec = torch.where(valid, spec * bump, zero)
+    diff_b = torch.where(valid, diff * bump, zero)
+    spec_b = torch.where(valid, spec * bump, zero)
     # colour: diffuse * base + spec * F, F = (1 - m) F_dielectric + m Schlick(base)
-    fres = ((1.0 - metal)[None] * f_die[:, None])[..., None] + metal[None, :, None] * (
-        base[None] + (1.0 - base)[None] * w_d[:, None, None])
-    direct = (diff[..., None] * base[None] + spec[..., None] * fres) * irradiance[:, None, :]
-    ambient = sh_irradiance(normal, sh) * ((1.0 - metal)[:, None] * base / math.pi)[None]
-    return direct + ambient
+    fres = ((1.0 - metal)[None] * f_die)[..., None] + metal[None, :, None] * (
+        base[None] + (1.0 - base)[None] * w_d[..., None])
+    irr = irradiance
+    direct = (diff_b[..., None] * base[None] + spec_b[..., None] * fres) * irr
+    basis = sh_basis(normal)
+    sh_e = _sh_sum(basis, sh)  # (K|1, N, 3)
+    albedo = (1.0 - metal)[:, None] * base / math.pi
+    pred = direct + sh_e * albedo[None]
+    if tangents is None:
+        return pred, None, None, None, None
+
+    # d/d base colour (channel by channel) and d/d metallic
+    metal_w = metal[None, :, None] * w_d[..., None]
+    d_base = (diff_b[..., None] + spec_b[..., None] * (metal[None, :, None] - metal_w)) * irr
+    d_base = d_base + sh_e * ((1.0 - metal) / math.pi)[None, :, None]
+    diff_nom = torch.where(valid, diff_shape * co * bump / math.pi, zero)  # diffuse without the (1 - m) factor
+    d_fres_m = (base[None] + (1.0 - base)[None] * w_d[..., None]) - f_die[..., None]
+    d_metal = (spec_b[..., None] * d_fres_m - diff_nom[..., None] * base[None]) * irr - sh_e * (base / math.pi)[None]
+
+    # d/d roughness: through alpha^2 (D, G) and the retro-reflection's Rr
+    dalpha = torch.where(rough * rough > 1e-3, 2.0 * rough, zero)
+    da2 = (2.0 * alpha * dalpha)[None]
+    drr = 2.0 * (cos_d * cos_d)
+    d_diff_shape_rr = fo + fi[None] + fo * fi[None] * (2.0 * rr - 1.0)
+    ddiff_r = drr * d_diff_shape_rr * co * dielectric
+    dd_r = d * (da2 / a2[None] - 2.0 * ch * ch * da2 / denom)
+    dgi_r = -0.25 * g_i[None] * g_i[None] * tan2_i[None] * da2 / sq_i[None]
+    dgo_r = -0.25 * g_o * g_o * tan2_o * da2 / sq_o
+    dspec_r = dd_r * gi4 * g_o + d * (dgi_r / (4.0 * ci)[None]) * g_o + d * gi4 * dgo_r
+    ddiff_r = torch.where(valid, ddiff_r * bump, zero)
+    dspec_r = torch.where(valid, dspec_r * bump, zero)
+    d_rough = (ddiff_r[..., None] * base[None] + dspec_r[..., None] * fres) * irr
+
+    # d/d normal along each tangent (T, K, N)
+    t = tangents
+    dci = t[..., 2][:, None]  # (T, 1, N)
+    dco = _dots_t(l, t)
+    dch = torch.where(ch_raw > 1e-6, _dots_t(h, t), zero)
+    dfi = _schlick_d(ci)[None] * dci
+    dfo = _schlick_d(co) * dco
+    dshape = (dfi * (-0.5 * (1.0 - 0.5 * fo) + rr * (1.0 + fo * (rr - 1.0)))
+              + dfo * (-0.5 * (1.0 - 0.5 * fi)[None] + rr * (1.0 + fi[None] * (rr - 1.0))))
+    ddiff = (dshape * co + diff_shape * dco) * dielectric
+    dtan2_i = -2.0 / (ci * ci * ci)[None] * dci
+    dgi = -0.25 * g_i[None] * g_i[None] * a2[None] * dtan2_i / sq_i[None]
+    dgi4 = dgi / (4.0 * ci)[None] - gi4 * dci / ci[None]
+    dd = -4.0 * d * ch * (a2[None] - 1.0) * dch / denom
+    dtan2_o = -2.0 / (co * co * co) * dco
+    dgo = -0.25 * g_o * g_o * a2[None] * dtan2_o / sq_o
+    dspec = dd * gi4 * g_o + d * dgi4 * g_o + d * gi4 * dgo
+    inside = ((0.125 * tan2_i > 0.0) & (0.125 * tan2_i < 1.0))[None]
+    dbump_a2 = torch.where(inside, 0.125 * dtan2_i, zero)
+    dbump = -0.25 * bump * bump * tan2_l * dbump_a2 / sq_b
+    ddiff = torch.where(valid, ddiff * bump + diff * dbump, zero)
+    dspec = torch.where(valid, dspec * bump + spec * dbump, zero)
+    d_sh = _sh_sum(_sh_basis_d(normal[None], t), sh)  # (T, K|1, N, 3)
+    d_normal = (ddiff[..., None] * base[None] + dspec[..., None] * fres) * irr + d_sh * albedo[None]
+    return pred, d_normal, d_base, d_rough, d_metal
+
+
+def _dots_t(a: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """(K, M, 3) x (T, N, 3) -> (T, K, N) dot products, elementwise."""
+    a = a[None]
+    t = t[:, None]
+    return a[..., 0] * t[..., 0] + a[..., 1] * t[..., 1] + a[..., 2] * t[..., 2]

@@ -1,8 +1,9 @@
 """Many small independent least-squares problems at once: Levenberg-Marquardt per pixel (torch, any device).
 
 Once the lights are fixed every pixel of the fit is its own problem in a handful of parameters (normal gradient,
-base colour, roughness, metallic: 7). :func:`levenberg_marquardt` solves N of them together: forward-mode
-Jacobians (a tangent per parameter, all in one vectorised ``torch.func.jvp``), a Gauss-Newton system per pixel with the
+base colour, roughness, metallic: 7). :func:`levenberg_marquardt` solves N of them together: the Jacobians
+given in closed form by the caller (or forward-mode automatic differentiation, a tangent per parameter, all in one
+vectorised ``torch.func.jvp``), a Gauss-Newton system per pixel with the
 Cauchy loss's iteratively reweighted least-squares weights, its damping adapted per pixel (a step is kept only
 where it lowers that pixel's loss), and the P x P systems solved by :func:`cholesky_solve`, written out
 elementwise over the pixels so that the result does not depend on how a BLAS splits the work (the fit must be
@@ -55,6 +56,8 @@ def cholesky_solve(h: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
 
 
 ResidualFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+JacobianFn = Callable[[torch.Tensor, torch.Tensor],
+                      tuple[torch.Tensor, torch.Tensor, list[torch.Tensor], list[torch.Tensor]]]
 Shared = tuple[list[int], torch.Tensor, torch.Tensor]
 LAM_DONE = 1e3  # rejected steps count toward "done" once the damping has grown to this
 
@@ -70,14 +73,14 @@ def robust_loss(robust: torch.Tensor, quadratic: torch.Tensor, weight: torch.Ten
 
 def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torch.Tensor, scale: float,
                         iters: int, damping: float = 1e-2, on_step: Callable[[float], None] | None = None,
-                        shared: Shared | None = None, tol: float = 1e-4) -> torch.Tensor:
+                        shared: Shared | None = None, tol: float = 1e-4,
+                        jacobian: JacobianFn | None = None) -> torch.Tensor:
     """Minimise :func:`robust_loss` of ``residuals(theta)`` for N independent problems of P parameters.
 
     residuals: (theta (n, P), rows (n,) int64) -> (robust (n, M), quadratic (n, Q)) of the problems ``rows``
     (their parameters ``theta``), row i depending on theta[i] alone;
     theta: (N, P) start; weight (N,) and scale: of the robust part. Returns theta (N, P) after ``iters``
-    iterations. Each iteration: the forward-mode Jacobian (one tangent per parameter, all of them in one
-    vectorised ``jvp``), the Gauss-Newton system with weights ``2 weight / (scale^2 + r^2)`` (the Cauchy loss's
+    iterations. Each iteration: the Jacobian (``jacobian``), the Gauss-Newton system with weights ``2 weight / (scale^2 + r^2)`` (the Cauchy loss's
     IRLS weights, so the step is a descent direction) damped by ``lambda * diag`` (Marquardt), one trial step; a
     problem keeps the step only if its loss went down (then lambda / 3, else lambda * 4, per problem).
     A problem whose loss went down by at most ``tol`` of itself in two iterations in a row (steps that gained
@@ -85,6 +88,10 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
     moves.
     ``on_step(mean loss)`` after each iteration.
 
+    jacobian: (theta (n, P), rows) -> (robust (n, M), quadratic (n, Q), [d robust / d theta_j (n, M)] * P,
+    [d quadratic / d theta_j (n, Q)] * P): the residuals with their Jacobian in closed form; without it the
+    Jacobian is forward-mode automatic differentiation of ``residuals`` (a tangent per parameter, all of them in
+    one vectorised ``jvp``), where
     shared: (params, robust_owner (M,), quadratic_owner (Q,)): parameters that move disjoint residual entries
     (a colour's three channels) share one tangent; entry e's derivative is credited to ``params[owner[e]]``.
     """
@@ -112,20 +119,10 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
             continue
         m = len(active)
         th = theta[active]
-        tangents = torch.zeros((len(groups), m, p), dtype=dt, device=dev)
-        for g, params in enumerate(groups):
-            tangents[g, :, params] = 1.0
-        (r, q), (dr, dq) = torch.func.vmap(lambda t: torch.func.jvp(lambda x: residuals(x, active), (th,),
-                                                                    (t,)))(tangents)
-        r, q = r[0], q[0]
-        jr, jq = [None] * p, [None] * p
-        for g, params in enumerate(groups):
-            if len(params) == 1:
-                jr[params[0]], jq[params[0]] = dr[g], dq[g]
-                continue
-            for i, j in enumerate(params):  # entries owned by another parameter of the group: zero
-                jr[j] = dr[g] * (shared[1] == i).to(dt)
-                jq[j] = dq[g] * (shared[2] == i).to(dt)
+        if jacobian is not None:
+            r, q, jr, jq = jacobian(th, active)
+        else:
+            r, q, jr, jq = _forward_jacobian(residuals, th, active, groups, shared)
         r, q = r.detach(), q.detach()
         w = weight[active, None] * 2.0 / (c2 + r * r)  # IRLS weight: rho'(r) / r of weight * log(1 + r^2 / c^2)
         wr = w * r
@@ -158,3 +155,25 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
         if on_step is not None:
             on_step(float(loss.mean()))
     return theta
+
+
+def _forward_jacobian(residuals: ResidualFn, th: torch.Tensor, rows: torch.Tensor, groups: list[list[int]],
+                      shared: Shared | None):
+    """(robust, quadratic, [d robust / d theta_j], [d quadratic / d theta_j]) of ``residuals`` at ``th`` by
+    forward-mode automatic differentiation: one tangent per parameter group, all in one vectorised ``jvp``."""
+    m, p = th.shape
+    dt, dev = th.dtype, th.device
+    tangents = torch.zeros((len(groups), m, p), dtype=dt, device=dev)
+    for g, params in enumerate(groups):
+        tangents[g, :, params] = 1.0
+    (r, q), (dr, dq) = torch.func.vmap(lambda t: torch.func.jvp(lambda x: residuals(x, rows), (th,), (t,)))(tangents)
+    r, q = r[0], q[0]
+    jr, jq = [None] * p, [None] * p
+    for g, params in enumerate(groups):
+        if len(params) == 1:
+            jr[params[0]], jq[params[0]] = dr[g], dq[g]
+            continue
+        for i, j in enumerate(params):  # entries owned by another parameter of the group: zero
+            jr[j] = dr[g] * (shared[1] == i).to(dt)
+            jq[j] = dq[g] * (shared[2] == i).to(dt)
+    return r, q, jr, jq
