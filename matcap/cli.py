@@ -63,7 +63,16 @@ def _one_line_warning(message, category, filename, lineno, line=None) -> str:
     return f"matcap: warning: {' '.join(str(message).split())}\n"
 
 
+def _passive_threads() -> None:
+    """OpenMP threads that sleep, not spin, while they wait for work (torch's and MKL's thread teams; read once, when
+    torch loads, so before any command imports it). Spinning threads take the cores that other jobs, or the
+    command's own threads, need: on a busy machine every small operation then waits for a thread that lost its
+    core. ``OMP_WAIT_POLICY`` set by the user is kept."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
 def main(argv: list[str] | None = None) -> int:
+    _passive_threads()
     saved = warnings.formatwarning
     if not os.environ.get("MATCAP_DEBUG"):
         warnings.formatwarning = _one_line_warning

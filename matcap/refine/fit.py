@@ -20,7 +20,9 @@ Photos are scaled so that their mean over the mask is 0.5 (the fit's units); lig
 """
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
@@ -758,20 +760,21 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
     if count:
         bar.add_total(iters)
     near = directions_free and lights.kind == "near"
-    for _ in range(iters):
-        opt.zero_grad()
-        if offset is not None:
-            lights.log_intensity = relative_to + offset
-        per, data = _loss(torch, prob, px, lights, s, s.cauchy, s.fit_brdf)
-        loss = per.mean()
-        loss.backward()
-        opt.step()
-        if near:  # a negative inverse distance, or a direction behind the framing plane, would put the lamp where
-            with torch.no_grad():  # it lights nothing the camera sees
-                lights.inv_distance.clamp_(min=0.0)
-                lights.vec[:, 2].clamp_(min=1e-3)
-        data_mean = float(data.detach().mean())
-        bar.step(label, float(loss.detach()))
+    with _one_thread(torch):  # a few thousand pixels: too small an operation to share
+        for _ in range(iters):
+            opt.zero_grad()
+            if offset is not None:
+                lights.log_intensity = relative_to + offset
+            per, data = _loss(torch, prob, px, lights, s, s.cauchy, s.fit_brdf)
+            loss = per.mean()
+            loss.backward()
+            opt.step()
+            if near:  # a negative inverse distance, or a direction behind the framing plane, would put the lamp
+                with torch.no_grad():  # where it lights nothing the camera sees
+                    lights.inv_distance.clamp_(min=0.0)
+                    lights.vec[:, 2].clamp_(min=1e-3)
+            data_mean = float(data.detach().mean())
+            bar.step(label, float(loss.detach()))
     if offset is not None:
         lights.log_intensity = (relative_to + offset).detach()
     for t in lights.tensors():
@@ -1060,9 +1063,41 @@ def ambient_share(torch, lights, pos, normal) -> float:
     return a / max(a + d, 1e-12)
 
 
+class _Stopped(Exception):
+    """A chunk of the per-pixel solve abandoned because another one failed or the fit was interrupted."""
+
+
+@contextlib.contextmanager
+def _one_thread(torch):
+    """torch's operations on one thread inside the block (its own setting restored after): the fit's operations are
+    many and small, and a team of OpenMP threads meets at a barrier after each; where another job holds a core, the
+    team waits for the thread it lost at every operation (and spins while it waits)."""
+    was = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield was
+    finally:
+        torch.set_num_threads(was)
+
+
+def _workers(threads: int) -> int:
+    """Threads for the per-pixel solve's chunks: torch's thread count, at most the CPUs this process may use."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count() or 1
+    return max(1, min(threads, cpus))
+
+
 def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
     """Every pixel's maps with the lights fixed (independent problems), chunk by chunk: Levenberg-Marquardt
-    (:func:`_lm_pixels`) on the loss of :func:`_loss`."""
+    (:func:`_lm_pixels`) on the loss of :func:`_loss`. The chunks run side by side on as many threads as torch
+    was given (:func:`_workers`), each of them with one-thread operations, so a chunk's result does not depend on
+    the thread count; progress is reported from the calling thread."""
+    import queue
+    import threading
+    from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
+
     from matcap.refine.model import PixelParams
 
     lights = lights.detached()
@@ -1071,11 +1106,39 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
     step = max(256, s.lm_observations // prob.obs.shape[0])
     chunks = [slice(i, min(i + step, n)) for i in range(0, n, step)]
     bar.add_total(iters * len(chunks))
-    for sl in chunks:
-        part = prob.part(sl)
-        solved = _lm_pixels(torch, part, [t[sl] for t in out], lights, s, c, iters, lambda loss: bar.step(label, loss))
+    losses = queue.SimpleQueue()
+    stop = threading.Event()
+
+    def on_step(loss):
+        if stop.is_set():
+            raise _Stopped
+        losses.put(loss)
+
+    def solve(sl):
+        solved = _lm_pixels(torch, prob.part(sl), [t[sl] for t in out], lights, s, c, iters, on_step)
         for o, t in zip(out, solved):
             o[sl] = t.detach()
+
+    def report():
+        while not losses.empty():
+            bar.step(label, losses.get())
+
+    with _one_thread(torch) as threads:
+        pool = ThreadPoolExecutor(_workers(threads), initializer=torch.set_num_threads, initargs=(1,))
+        try:
+            futures = [pool.submit(solve, sl) for sl in chunks]
+            pending = set(futures)
+            while pending:
+                done, pending = wait(pending, timeout=0.05, return_when=FIRST_EXCEPTION)
+                report()
+                for f in done:
+                    f.result()
+        except BaseException:
+            stop.set()
+            raise
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+    report()
     return PixelParams(*out)
 
 
@@ -1093,8 +1156,12 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
     roots = [math.sqrt(s.prior_normal), math.sqrt(s.prior_base / 3.0), math.sqrt(s.prior_rough),
              math.sqrt(s.prior_metal)]
 
+    taken = [None, part]  # the rows last taken and their problem: the Jacobian and the trial step share them
+
     def pixels(t, rows):
-        sub = part if len(rows) == n else part.take(rows)
+        if len(rows) != n and rows is not taken[0]:
+            taken[:] = [rows, part.take(rows)]
+        sub = part if len(rows) == n else taken[1]
         rl, ml = (t[:, 5], t[:, 6]) if brdf else (rough_logit[rows], metal_logit[rows])
         px = PixelParams(t[:, 0:2], t[:, 2:5], rl, ml)
         return sub, px, px.normal(), px.base(), px.rough() if brdf else sub.r0, px.metal() if brdf else sub.m0

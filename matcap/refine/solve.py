@@ -80,9 +80,10 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
     residuals: (theta (n, P), rows (n,) int64) -> (robust (n, M), quadratic (n, Q)) of the problems ``rows``
     (their parameters ``theta``), row i depending on theta[i] alone;
     theta: (N, P) start; weight (N,) and scale: of the robust part. Returns theta (N, P) after ``iters``
-    iterations. Each iteration: the Jacobian (``jacobian``), the Gauss-Newton system with weights ``2 weight / (scale^2 + r^2)`` (the Cauchy loss's
-    IRLS weights, so the step is a descent direction) damped by ``lambda * diag`` (Marquardt), one trial step; a
-    problem keeps the step only if its loss went down (then lambda / 3, else lambda * 4, per problem).
+    iterations. Each iteration: the Jacobian (``jacobian``), the Gauss-Newton system with weights
+    ``2 weight / (scale^2 + r^2)`` (the Cauchy loss's IRLS weights, so the step is a descent direction) damped by
+    ``lambda * diag`` (Marquardt), one trial step; a problem keeps the step only if its loss went down (then
+    lambda / 3, else lambda * 4, per problem).
     A problem whose loss went down by at most ``tol`` of itself in two iterations in a row (steps that gained
     nothing, or rejected with lambda >= LAM_DONE) is done and drops out: later iterations cost only what still
     moves.
