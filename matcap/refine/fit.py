@@ -1175,7 +1175,7 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
     def residuals(t, rows):
         sub, _, nrm, b, r, m = pixels(t, rows)
         res = _shade(lights, sub.pos, nrm, b, r, m) - sub.obs
-        res = torch.where(sub.sat & (res > 0), torch.zeros_like(res), res)
+        res = res * ~(sub.sat & (res > 0))  # a clipped observation the model exceeds: no residual
         return res.permute(1, 0, 2).reshape(len(t), -1), priors(sub, nrm, b, r, m)
 
     def jacobian(t, rows):
@@ -1188,9 +1188,10 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
         wo, irr = lights.incident(sub.pos)
         pred, d_n, d_b, d_r, d_m = shade_jacobian(nrm, b, r, m, wo, irr, lights.sh, tangents)
         res = pred - sub.obs
-        free = ~(sub.sat & (res > 0))  # a clipped observation the model exceeds: zero residual, no derivative
-        zero = torch.zeros((), dtype=t.dtype, device=t.device)
-        flat = lambda x: torch.where(free, x, zero).permute(1, 0, 2).reshape(count, -1)  # noqa: E731
+        # a clipped observation the model exceeds: zero residual, no derivative (a product, not torch.where: the
+        # model's values and derivatives are finite, and a product of floats is several times faster)
+        free = (~(sub.sat & (res > 0))).to(t.dtype)
+        flat = lambda x: (x * free).permute(1, 0, 2).reshape(count, -1)  # noqa: E731
         robust = flat(res)
         q = priors(sub, nrm, b, r, m)
         q_width = q.shape[1]
@@ -1199,7 +1200,7 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
         sb = b * (1.0 - b)  # sigmoid's derivative
         d_b = d_b * sb[None]
         for c in range(3):
-            jr.append(flat(torch.where(channel == c, d_b, zero)))
+            jr.append(flat(d_b * (channel == c).to(t.dtype)))
             col = t.new_zeros(count, q_width)
             col[:, 3 + c] = roots[1] * sb[:, c] / (b[:, c] + 0.02)
             jq.append(col)
