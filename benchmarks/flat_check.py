@@ -34,7 +34,9 @@ Scores over the whole frame: mean angular normal error (degrees); base colour RM
 least-squares scale per channel (the lights' absolute intensity is unknown to a capture without ``--lights``, so
 the colour's overall scale is not scored), and as "% below const." how much lower that is than the RMSE of the
 truth's own mean (the best constant); roughness RMSE (no scale) and its % below the best constant, left out
-("-") for sets whose roughness is one constant.
+("-") for sets whose roughness is one constant. "light (deg)": the median angle between the lights the result's
+lights.json holds and the true ones, seen from the sample's centre; "fit": whether the fit of the photos was kept
+("fitted", with its light model) or the networks' maps were ("kept networks"); in a mean row, how many were fitted.
 """
 from __future__ import annotations
 
@@ -42,6 +44,7 @@ import argparse
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -299,6 +302,31 @@ def score(result, truth: dict[str, np.ndarray], rough_constant: bool) -> dict:
     return out
 
 
+def light_directions(doc: dict) -> dict[int, np.ndarray]:
+    """Unit direction toward each photo's light from the sample's centre (the origin), by image index, from a
+    lights.json document: a point light's position, a distant light's direction."""
+    out = {}
+    for e in doc["images"]:
+        v = np.asarray(e["position"] if e["kind"] == "point" else e["direction"], np.float64)
+        out[e["index"]] = v / max(float(np.linalg.norm(v)), 1e-12)
+    return out
+
+
+def fit_summary(result_dir: Path, true_lights: Path) -> dict:
+    """What the fit of a result did (capture.json ``refine``): light model, whether it kept the networks' maps,
+    mean re-render PSNR, and the median angle (degrees) between its lights and the true ones (seen from the
+    sample's centre)."""
+    info = json.loads((result_dir / "capture.json").read_text()).get("refine") or {}
+    out = {"light_model": info.get("light_model"), "kept_network_maps": info.get("kept_network_maps"),
+           "psnr_db": info.get("psnr_db_mean"), "lights_source": (info.get("lights") or {}).get("source")}
+    if (result_dir / "lights.json").is_file():
+        got = light_directions(json.loads((result_dir / "lights.json").read_text()))
+        want = light_directions(json.loads(true_lights.read_text()))
+        angles = [math.degrees(math.acos(float(np.clip(got[k] @ want[k], -1.0, 1.0)))) for k in want if k in got]
+        out["light_deg"] = float(np.median(angles)) if angles else None
+    return out
+
+
 def flat_baseline(truth: dict[str, np.ndarray]) -> dict:
     n = np.zeros_like(truth["normal"])
     n[..., :] = FLAT_NORMAL
@@ -312,7 +340,7 @@ def flat_available() -> bool:
     """Whether this matcap's ``capture`` has the ``--flat`` option (its --help lists it)."""
     run = subprocess.run([sys.executable, "-m", "matcap", "capture", "--help"], capture_output=True, text=True,
                          env=_env(), cwd=REPO)
-    return "--flat" in run.stdout
+    return re.search(r"(?<![\w-])--flat(?![\w-])", run.stdout) is not None
 
 
 def _env() -> dict:
@@ -332,10 +360,15 @@ def capture_args(method: str, folder: Path) -> list[str]:
 
 def run_capture(method: str, folder: Path) -> tuple[Path, float | None, str | None]:
     """``matcap capture`` of ``folder``/photos by ``method`` into ``folder``/results/<method> unless a result is
-    there already: (result folder, seconds or None when reused, error line or None)."""
+    there already: (result folder, wall seconds of the command, error line or None). The command and its seconds
+    are kept in ``results/<method>.json`` (so a reused result still reports them)."""
+    from scenes.atomic import write_json_atomic
+
     out = folder / "results" / method
+    record = folder / "results" / f"{method}.json"
     if (out / "capture.json").is_file():
-        return out, None, None
+        secs = json.loads(record.read_text()).get("seconds") if record.is_file() else None
+        return out, secs, None
     cmd = [sys.executable, "-m", "matcap", "capture", str(folder / "photos"), "--out", str(out), "--quiet",
            "--overwrite"] + capture_args(method, folder)
     t0 = time.perf_counter()
@@ -344,6 +377,7 @@ def run_capture(method: str, folder: Path) -> tuple[Path, float | None, str | No
     if run.returncode != 0:
         lines = [ln for ln in (run.stderr or run.stdout).strip().splitlines() if ln.strip()]
         return out, secs, lines[-1] if lines else f"exit {run.returncode}"
+    write_json_atomic(record, {"command": ["python"] + cmd[1:], "seconds": secs}, indent=1)
     return out, secs, None
 
 
@@ -357,17 +391,20 @@ def _fmt(v, spec: str) -> str:
 def table(rows: list[dict]) -> str:
     """Markdown table of the scored rows, then one mean row per condition and method."""
     head = ("| set | cond | method | normal (deg) | base RMSE* | base % below const. | rough RMSE | "
-            "rough % below const. | capture s |")
-    lines = [head, "|" + "---|" * 3 + "---:|" * 6]
+            "rough % below const. | light (deg) | fit | capture s |")
+    lines = [head, "|" + "---|" * 3 + "---:|" * 7 + "---|---:|"]
 
     def line(r: dict) -> str:
         if r.get("status") and r["status"] != "ok":
-            return f"| {r['set']} | {r['condition']} | {r['method']} | {r['status']} | | | | | |"
-        s = r.get("scores", {})
+            return f"| {r['set']} | {r['condition']} | {r['method']} | {r['status']} | | | | | | | |"
+        s, fit = r.get("scores", {}), r.get("fit", {})
+        how = "-" if not fit else ("kept networks" if fit.get("kept_network_maps") else
+                                   f"fitted, {fit.get('light_model')}")
         return (f"| {r['set']} | {r['condition']} | {r['method']} | {_fmt(s.get('normal_deg'), '.2f')} | "
                 f"{_fmt(s.get('base_rmse'), '.4f')} | {_fmt(s.get('base_below_pct'), '.0f')} | "
                 f"{_fmt(s.get('rough_rmse') if 'rough_below_pct' in s else None, '.4f')} | "
-                f"{_fmt(s.get('rough_below_pct'), '.0f')} | {_fmt(r.get('capture_s'), '.0f')} |")
+                f"{_fmt(s.get('rough_below_pct'), '.0f')} | {_fmt(fit.get('light_deg'), '.1f')} | {how} | "
+                f"{_fmt(r.get('capture_s'), '.0f')} |")
 
     lines += [line(r) for r in rows]
     for m in means(rows):
@@ -395,8 +432,12 @@ def means(rows: list[dict]) -> list[dict]:
             if vals:
                 agg[k] = float(np.mean(vals))
         secs = [r["capture_s"] for r in group if r.get("capture_s") is not None]
+        light = [r["fit"]["light_deg"] for r in group if (r.get("fit") or {}).get("light_deg") is not None]
+        kept = sum(bool((r.get("fit") or {}).get("kept_network_maps")) for r in group)
+        fit = {"light_deg": float(np.mean(light)) if light else None, "kept_network_maps": None,
+               "light_model": f"{len(group) - kept} of {len(group)}"} if any(r.get("fit") for r in group) else {}
         out.append({"set": f"mean of {len(group)}", "condition": cond, "method": method, "status": "ok",
-                    "scores": agg, "capture_s": float(np.mean(secs)) if secs else None, "mean": True})
+                    "scores": agg, "fit": fit, "capture_s": float(np.mean(secs)) if secs else None, "mean": True})
     return out
 
 
@@ -448,16 +489,16 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
-def prepare(folder: Path, set_name: str, condition: str, args) -> tuple[float | None, list[str]]:
+def prepare(folder: Path, set_name: str, condition: str, args) -> tuple[float | None, list[str], bool]:
     """Render ``set_name`` under ``condition`` into ``folder`` unless sample.json says it is there already with
-    these settings: (render seconds or None when reused, constant maps)."""
+    these settings: (render seconds, constant maps, reused)."""
     info = {"set": set_name, "condition": condition, "size": args.size, "photos": args.photos, "spp": args.spp,
             "seed": args.seed}
     meta = folder / "sample.json"
     if meta.is_file():
         old = json.loads(meta.read_text())
         if all(old.get(k) == v for k, v in info.items()):
-            return None, old.get("constant", [])
+            return old.get("render_s"), old.get("constant", []), True
         import shutil
 
         shutil.rmtree(folder)  # other settings: the old results do not belong to the new photos
@@ -467,7 +508,7 @@ def prepare(folder: Path, set_name: str, condition: str, args) -> tuple[float | 
     photos = render_photos(maps, lights, spp=args.spp, seed=args.seed)
     secs = time.perf_counter() - t0
     write_sample(folder, maps, lights, photos, {**info, "constant": constant, "render_s": secs})
-    return secs, constant
+    return secs, constant, False
 
 
 def main(argv=None) -> int:
@@ -483,13 +524,13 @@ def main(argv=None) -> int:
     for set_name in args.sets:
         for cond in args.conditions:
             folder = work / f"{set_name}_{cond}"
-            secs, constant = prepare(folder, set_name, cond, args)
-            print(f"{set_name} {cond}: " + ("rendered reused" if secs is None else
-                                          f"rendered {args.photos} photos in {secs:.1f} s"), flush=True)
+            secs, constant, reused = prepare(folder, set_name, cond, args)
+            print(f"{set_name} {cond}: {args.photos} photos " + ("reused" if reused else "rendered")
+                  + ("" if secs is None else f" (render {secs:.1f} s)"), flush=True)
             truth = read_truth(folder)
             rough_const = "roughness" in constant or float(np.ptp(truth["roughness"])) == 0.0
             rows.append({"set": set_name, "condition": cond, "method": "flat plane", "status": "ok",
-                         "scores": flat_baseline(truth), "capture_s": None})
+                         "scores": flat_baseline(truth), "capture_s": None, "render_s": secs})
             for method in args.methods:
                 row = {"set": set_name, "condition": cond, "method": method, "capture_s": None}
                 if method.startswith("flat") and not has_flat:
@@ -497,6 +538,7 @@ def main(argv=None) -> int:
                     rows.append(row)
                     print(f"{set_name} {cond} {method}: not available", flush=True)
                     continue
+                reused = (folder / "results" / method / "capture.json").is_file()
                 out, csecs, error = run_capture(method, folder)
                 row["capture_s"] = csecs
                 if error is not None:
@@ -505,15 +547,16 @@ def main(argv=None) -> int:
                 else:
                     row["status"] = "ok"
                     row["scores"] = score(read_result(out), truth, rough_const)
+                    row["fit"] = fit_summary(out, folder / "lights.json")
                     print(f"{set_name} {cond} {method}: normal {row['scores']['normal_deg']:.2f} deg"
-                          + (" (result reused)" if csecs is None else f" ({csecs:.0f} s)"), flush=True)
+                          + (" (result reused)" if reused else f" ({csecs:.0f} s)"), flush=True)
                 rows.append(row)
             if args.json:
                 _write_json(args, work, rows)
     print()
     print("base RMSE*: linear RGB after one least-squares scale per channel (the lights' absolute intensity is "
           "unknown to a capture); % below const.: lower than the RMSE of the truth's mean by this much; rough: "
-          "'-' where the set's roughness is a constant")
+          "'-' where the set's roughness is a constant; light: median angle of the result's lights from the true ones")
     print(table(rows))
     if args.json:
         _write_json(args, work, rows)
