@@ -34,7 +34,9 @@ Scores over the whole frame: mean angular normal error (degrees); base colour RM
 least-squares scale per channel (the lights' absolute intensity is unknown to a capture without ``--lights``, so
 the colour's overall scale is not scored), and as "% below const." how much lower that is than the RMSE of the
 truth's own mean (the best constant); roughness RMSE (no scale) and its % below the best constant, left out
-("-") for sets whose roughness is one constant. "light (deg)": the median angle between the lights the result's
+("-") for sets whose roughness is a constant (standard deviation under :data:`CONSTANT_STD`). A mean row
+averages each RMSE over the sets that have it and gives "% below const." of that mean RMSE against the mean of
+the best constants' RMSEs over the same sets. "light (deg)": the median angle between the lights the result's
 lights.json holds and the true ones, seen from the sample's centre; "fit": whether the fit of the photos was kept
 ("fitted", with its light model) or the networks' maps were ("kept networks"); in a mean row, how many were fitted.
 """
@@ -70,6 +72,8 @@ NEAR_DISTANCE_WIDTHS = (1.0, 3.0)
 NEAR_ELEVATION_DEG = (25.0, 70.0)
 FAR_ELEVATION_DEG = (30.0, 70.0)
 SAMPLE_WIDTH = 2.0  # world units: the framing plane spans x in [-1, 1]
+#: A truth map whose standard deviation is below this counts as a constant (its "% below const." is not scored).
+CONSTANT_STD = 0.01
 DEFAULT_SPP = 16  # the lights are points and directions and the texels are nearest: little noise to average
 FLAT_NORMAL = (0.0, 0.0, 1.0)
 
@@ -392,7 +396,7 @@ def table(rows: list[dict]) -> str:
     """Markdown table of the scored rows, then one mean row per condition and method."""
     head = ("| set | cond | method | normal (deg) | base RMSE* | base % below const. | rough RMSE | "
             "rough % below const. | light (deg) | fit | capture s |")
-    lines = [head, "|" + "---|" * 3 + "---:|" * 7 + "---|---:|"]
+    lines = [head, "|" + "---|" * 3 + "---:|" * 6 + "---|---:|"]
 
     def line(r: dict) -> str:
         if r.get("status") and r["status"] != "ok":
@@ -424,13 +428,17 @@ def means(rows: list[dict]) -> list[dict]:
         if not group:
             continue
         agg = {}
-        for k in ("normal_deg", "base_rmse", "base_below_pct", "rough_rmse", "rough_below_pct"):
-            if k == "rough_rmse":
-                vals = [r["scores"][k] for r in group if "rough_below_pct" in r["scores"]]
-            else:
-                vals = [r["scores"][k] for r in group if r["scores"].get(k) is not None]
+        for k in ("normal_deg", "metal_rmse"):
+            vals = [r["scores"][k] for r in group if r["scores"].get(k) is not None]
             if vals:
                 agg[k] = float(np.mean(vals))
+        for part in ("base", "rough"):
+            have = [r["scores"] for r in group if r["scores"].get(f"{part}_below_pct") is not None]
+            if have:
+                err = float(np.mean([x[f"{part}_rmse"] for x in have]))
+                ref = float(np.mean([x[f"{part}_const_rmse"] for x in have]))
+                agg.update({f"{part}_rmse": err, f"{part}_const_rmse": ref, f"{part}_below_pct": below(err, ref),
+                            f"{part}_sets": len(have)})
         secs = [r["capture_s"] for r in group if r.get("capture_s") is not None]
         light = [r["fit"]["light_deg"] for r in group if (r.get("fit") or {}).get("light_deg") is not None]
         kept = sum(bool((r.get("fit") or {}).get("kept_network_maps")) for r in group)
@@ -528,7 +536,7 @@ def main(argv=None) -> int:
             print(f"{set_name} {cond}: {args.photos} photos " + ("reused" if reused else "rendered")
                   + ("" if secs is None else f" (render {secs:.1f} s)"), flush=True)
             truth = read_truth(folder)
-            rough_const = "roughness" in constant or float(np.ptp(truth["roughness"])) == 0.0
+            rough_const = "roughness" in constant or float(np.std(truth["roughness"])) < CONSTANT_STD
             rows.append({"set": set_name, "condition": cond, "method": "flat plane", "status": "ok",
                          "scores": flat_baseline(truth), "capture_s": None, "render_s": secs})
             for method in args.methods:

@@ -162,11 +162,12 @@ def test_scores_on_constructed_maps():
 
 def test_means_and_table():
     rows = [{"set": s, "condition": "near", "method": "default", "status": "ok", "capture_s": 10.0,
-             "scores": {"normal_deg": v, "base_rmse": 0.1, "base_below_pct": 50.0}}
+             "scores": {"normal_deg": v, "base_rmse": 0.1, "base_const_rmse": 0.2, "base_below_pct": 50.0}}
             for s, v in (("a", 2.0), ("b", 4.0))]
     rows.append({"set": "a", "condition": "near", "method": "flat", "status": "not available", "capture_s": None})
     (m,) = F.means(rows)
     assert m["scores"]["normal_deg"] == pytest.approx(3.0) and m["set"] == "mean of 2"
+    assert m["scores"]["base_below_pct"] == pytest.approx(50.0)
     text = F.table(rows)
     assert "| a | near | flat | not available |" in text and "| mean of 2 | near | default | 3.00 |" in text
 
