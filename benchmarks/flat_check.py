@@ -25,6 +25,10 @@ Each lamp's strength is set so that the brightest point of the plane receives an
     <set>_<cond>/gt/normal.exr basecolor.exr roughness.exr metallic.exr   the truth (linear)
     <set>_<cond>/sample.json         what was rendered (size, seed, spp, photos, render seconds)
     <set>_<cond>/results/<method>/   `matcap capture`'s result folder
+    <set>_<cond>/results/<method>.json   the capture command and its wall seconds
+
+The renders use the Mitsuba variant ``renderers.variant.choose_variant`` picks (``MATCAP_MITSUBA_VARIANT=scalar_rgb``
+forces the scalar one).
 
 Methods: ``default`` (``matcap capture photos --out R --quiet``), ``lights`` (the same with ``--lights
 lights.json``), ``flat`` and ``flat+lights`` (with ``--flat``; "not available" while ``matcap capture --help`` does
