@@ -25,7 +25,7 @@ Each lamp's strength is set so that the brightest point of the plane receives an
     <set>_<cond>/gt/normal.exr basecolor.exr roughness.exr metallic.exr   the truth (linear)
     <set>_<cond>/sample.json         what was rendered (size, seed, spp, photos, render seconds)
     <set>_<cond>/results/<method>/   `matcap capture`'s result folder
-    <set>_<cond>/results/<method>.json   the capture command and its wall seconds
+    <set>_<cond>/results/<method>.run.json   the capture command and its wall seconds
 
 The renders use the Mitsuba variant ``renderers.variant.choose_variant`` picks (``MATCAP_MITSUBA_VARIANT=scalar_rgb``
 forces the scalar one).
@@ -369,11 +369,11 @@ def capture_args(method: str, folder: Path) -> list[str]:
 def run_capture(method: str, folder: Path) -> tuple[Path, float | None, str | None]:
     """``matcap capture`` of ``folder``/photos by ``method`` into ``folder``/results/<method> unless a result is
     there already: (result folder, wall seconds of the command, error line or None). The command and its seconds
-    are kept in ``results/<method>.json`` (so a reused result still reports them)."""
+    are kept in ``results/<method>.run.json`` (so a reused result still reports them)."""
     from scenes.atomic import write_json_atomic
 
     out = folder / "results" / method
-    record = folder / "results" / f"{method}.json"
+    record = folder / "results" / f"{method}.run.json"
     if (out / "capture.json").is_file():
         secs = json.loads(record.read_text()).get("seconds") if record.is_file() else None
         return out, secs, None
