@@ -672,6 +672,8 @@ def capture(
     if flat and not refine:
         raise MatcapError("--flat fits a plane's lamps and maps to the photos; it has no use with --no-refine")
     picked = pick_images(len(photo_names(folder)), max_images, seed)  # as load_capture picks them
+    if flat and lights is None and ball is None and len(picked) < 3:
+        raise MatcapError(f"a flat sample's lamps are found from at least 3 photos, got {len(picked)}")
     if lights is not None:
         known = read_lights_for(lights, folder, picked)
     check_output_dir(out, overwrite)  # fail before the expensive part
@@ -763,13 +765,19 @@ def capture(
     return maps, Path(out)
 
 
+#: A capture is taken as a flat sample without being told only where it has at least this many photos.
+FLAT_MIN_PHOTOS = 4
+
+
 def flat_choice(flat: bool | None, maps: MaterialMaps) -> tuple[bool, dict[str, Any]]:
     """(whether the fit takes the capture as a flat sample, capture.json ``flat``): ``flat`` as given (True / False:
-    the user said it), or, for None, :func:`matcap.refine.flat.check_flat` on the networks' normals."""
+    the user said it), or, for None, :func:`matcap.refine.flat.check_flat` on the networks' normals (and at least
+    ``FLAT_MIN_PHOTOS`` photos)."""
     from matcap.refine.flat import check_flat
 
     found = check_flat(maps.normal, maps.mask)
-    record = {"flat": bool(found.flat if flat is None else flat), "chosen_by": "detection" if flat is None else "flag",
+    detected = found.flat and len(maps.meta.get("images_used", ())) >= FLAT_MIN_PHOTOS
+    record = {"flat": bool(detected if flat is None else flat), "chosen_by": "detection" if flat is None else "flag",
               "coverage": found.coverage, "tilt_mean_deg": found.tilt_mean_deg, "tilt_p90_deg": found.tilt_p90_deg}
     if flat is None:
         record["why"] = found.describe()

@@ -406,7 +406,7 @@ def _integrable(fit, obs, mask, network, contour, c_normal, contour_weight, equa
     prior = np.where(on[..., None], c_normal, network)
     share = contour_weight * (mask & ~on).sum() / max(int(on.sum()), 1)
     a = integrable_ambiguity(b_img, ok, prior, np.where(on, share, 1.0) * mask, s_lum, equal_lights)
-    if a is None:
+    if a is None or not np.isfinite(a).all() or abs(np.linalg.det(a)) < 1e-12:  # nothing to choose it by
         return fit
     s_new = s_lum @ np.linalg.inv(a)
     b = (fit.normal * fit.albedo[:, None]) @ a.T
@@ -676,6 +676,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         dist = np.linalg.norm(rel, axis=1)
         directions, inv_distance = rel / np.maximum(dist, 1e-12)[:, None], 1.0 / np.maximum(dist, 1e-12)
     given = None if known.intensities is None else np.asarray(known.intensities, np.float64)
+    if given is not None and inv_distance is not None:  # a point light's radiant intensity -> irradiance at the centre
+        given = given * inv_distance[:, None] ** 2
     luma = np.asarray(LUMA, np.float64)
     rows_l, cols_l = np.nonzero(mask_l)
     irr = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, arr_l["normal"][rows_l, cols_l],

@@ -101,9 +101,9 @@ class PlaneLamps:
 
     @property
     def near(self) -> bool:
-        """Whether the falloff placed the lamps: their distances cut the residual of distant lamps to at most
-        ``NEAR_GAIN`` of it."""
-        return self.residual <= NEAR_GAIN * self.residual_distant
+        """Whether the falloff placed the lamps: distant lamps leave a residual of at least ``NEAR_FLOOR`` and the
+        lamps' distances cut it to at most ``NEAR_GAIN`` of that."""
+        return self.residual_distant >= NEAR_FLOOR and self.residual <= NEAR_GAIN * self.residual_distant
 
     @property
     def distance_widths(self) -> np.ndarray:
@@ -328,8 +328,10 @@ def plane_fn_batch(fn, theta, k_count):
     return torch.func.vmap(fn, in_dims=(0, 0))(theta, torch.arange(k_count))
 
 
-#: The falloff placed the lamps where their distances cut the residual of distant lamps to at most this share of it.
+#: The falloff placed the lamps where their distances cut the residual of distant lamps to at most this share of it
 NEAR_GAIN = 0.5
+#: ... and that residual (relative RMS) is at least this: a falloff that shows above the photos' noise.
+NEAR_FLOOR = 0.005
 
 
 def flat_lights(images, mask: np.ndarray):
