@@ -619,6 +619,7 @@ def capture(
     refine_settings=None,
     lights: str | os.PathLike | None = None,
     ball: str | os.PathLike | None = None,
+    flat: bool | None = None,
     **estimate_kwargs,
 ) -> tuple[MaterialMaps, Path]:
     """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`); then, optionally,
@@ -635,6 +636,9 @@ def capture(
     ``lights``: a light file (:mod:`matcap.lightfiles`) whose lights the fit holds instead of estimating them;
     ``ball``: "auto" or a mask file of a mirror ball inside the photos: the lights come from its highlights
     (:mod:`matcap.calibrate`), the ball is kept out of the object's mask and ``calibration.png`` is written.
+    ``flat``: the photos show a flat sample facing the camera (True), not (False), or decide from the networks'
+    normals (None: :func:`matcap.refine.flat.check_flat`); a flat sample's lamps, unless given, are found from
+    their falloff over the plane (recorded in capture.json as ``flat``).
     ``relight``: an environment map path, or a dict of :func:`matcap.relight.relight` settings (``env``,
     ``point``, ``spp``, ``size`` ...), or a list of them; each renders ``relight_<name>.exr/.png`` into the result
     folder. ``export``: a folder, or a dict of :func:`matcap.export.export` settings with ``out`` (``preset``,
@@ -665,7 +669,11 @@ def capture(
                               f"use with --no-refine")
         if lights is not None and ball is not None:
             raise MatcapError("--lights and --ball both give the lights; choose one")
+    if flat and not refine:
+        raise MatcapError("--flat fits a plane's lamps and maps to the photos; it has no use with --no-refine")
     picked = pick_images(len(photo_names(folder)), max_images, seed)  # as load_capture picks them
+    if flat and lights is None and ball is None and len(picked) < 3:
+        raise MatcapError(f"a flat sample's lamps are found from at least 3 photos, got {len(picked)}")
     if lights is not None:
         known = read_lights_for(lights, folder, picked)
     check_output_dir(out, overwrite)  # fail before the expensive part
@@ -686,7 +694,7 @@ def capture(
         t0 = time.perf_counter()
         linear, colour_decision, cap, maps = decide_colour(folder, mask, max_side, refine_settings,
                                                            dict(estimate_kwargs, max_images=max_images), known,
-                                                           exclude=ball_region)
+                                                           exclude=ball_region, flat=flat)
         if colour_decision is not None:
             colour_decision["seconds"] = round(time.perf_counter() - t0, 3)
     linear = bool(linear)  # None without the fit: sRGB, the default
@@ -694,10 +702,17 @@ def capture(
         cap = without_region(load_capture(folder, mask=mask, linear=linear, max_side=max_side,
                                            max_images=max_images, seed=seed, contrast=contrast), ball_region)
     original_wh = list(cap.photo_size_wh)
+    if flat:
+        from matcap.refine.flat import check_plane_mask
+
+        check_plane_mask(cap.mask if cap.mask is not None else np.ones(cap.images[0].shape[:2], bool))
     if maps is None:
         maps = estimate(cap.images, cap.mask, **estimate_kwargs)
     else:  # the decision's sRGB prediction: the same call, made once
         maps = dataclasses.replace(maps, meta=dict(maps.meta))
+    flat_record = None
+    if refine:
+        flat, flat_record = flat_choice(flat, maps)
     maps = maps.with_constants(constants)
     if colour_decision is not None:  # its quick fits ran before the networks' timed call
         maps.meta["timings"] = dict(maps.meta.get("timings", {}), colour_decision_s=colour_decision["seconds"])
@@ -708,7 +723,8 @@ def capture(
         maps, refine_writer = refine_maps(maps, [cap.images[i] for i in maps.meta["images_used"]], used,
                                           cap.colour, refine_settings, constants,
                                           progress=bool(estimate_kwargs.get("progress")), seed=seed,
-                                          device=estimate_kwargs.get("device", "cpu"), lights=used_lights)
+                                          device=estimate_kwargs.get("device", "cpu"), lights=used_lights,
+                                          flat=flat)
     maps.meta["images_used"] = [cap.picked[i] for i in maps.meta["images_used"]]  # indices among all the photos
     maps.meta.update(
         {
@@ -725,6 +741,7 @@ def capture(
             "image_size_wh": [cap.images[0].shape[1], cap.images[0].shape[0]],
             "photo_size_wh": original_wh,  # image_size_wh differs from it after --max-side
             **({"ball": calibration.document_fields()["ball"]} if calibration is not None else {}),
+            **({"flat": flat_record} if flat_record is not None else {}),
         }
     )
 
@@ -746,6 +763,25 @@ def capture(
 
     write_result(maps, out, overwrite=overwrite, extra_files=finish)
     return maps, Path(out)
+
+
+#: A capture is taken as a flat sample without being told only where it has at least this many photos.
+FLAT_MIN_PHOTOS = 4
+
+
+def flat_choice(flat: bool | None, maps: MaterialMaps) -> tuple[bool, dict[str, Any]]:
+    """(whether the fit takes the capture as a flat sample, capture.json ``flat``): ``flat`` as given (True / False:
+    the user said it), or, for None, :func:`matcap.refine.flat.check_flat` on the networks' normals (and at least
+    ``FLAT_MIN_PHOTOS`` photos)."""
+    from matcap.refine.flat import check_flat
+
+    found = check_flat(maps.normal, maps.mask)
+    detected = found.flat and len(maps.meta.get("images_used", ())) >= FLAT_MIN_PHOTOS
+    record = {"flat": bool(detected if flat is None else flat), "chosen_by": "detection" if flat is None else "flag",
+              "coverage": found.coverage, "tilt_mean_deg": found.tilt_mean_deg, "tilt_p90_deg": found.tilt_p90_deg}
+    if flat is None:
+        record["why"] = found.describe()
+    return record["flat"], record
 
 
 def without_region(cap: Capture, region: np.ndarray | None) -> Capture:
@@ -796,14 +832,15 @@ def decoding_record(cap: Capture, linear: bool | None, chosen_by: str, contrast:
 
 
 def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None, pixels: int = 6000,
-                  exclude: np.ndarray | None = None):
+                  exclude: np.ndarray | None = None, flat: bool | None = None):
     """(linear?, record, capture, maps) for 8-bit photos given neither --linear nor --srgb: run the networks on the
     sRGB-decoded photos, fit both decodings (a quick fit on ``pixels`` random object pixels) and keep the one whose
     re-render is closer to the photos *as stored* (RMS in 8-bit units / 255). ``capture`` is the photos read the
     chosen way; ``maps`` the networks' maps when they were made from those photos (sRGB chosen), else None, so the
     caller reads and predicts nothing twice. 16-bit and float photos: (False, None, capture, None). ``known``:
     the :class:`matcap.lightfiles.KnownLights` of the photos read, held by both quick fits; ``exclude``: (H, W)
-    pixels kept out of the mask (a mirror ball)."""
+    pixels kept out of the mask (a mirror ball); ``flat``: as :func:`capture` (a flat sample's lamps are found
+    from each decoding's photos over the whole sample, then held by its quick fit)."""
     from matcap.refine import RefineSettings, refine
 
     kwargs = dict(estimate_kwargs, progress=False)
@@ -823,9 +860,14 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
     quick = dataclasses.replace(base, light_iters=min(base.light_iters, 200), coarse_iters=0,
                                 fine_iters=min(base.fine_iters, 10))
     rmse = {}
+    flat, _ = flat_choice(flat, maps)
     for lin, cap in caps.items():
         images = [cap.images[i] for i in maps.meta["images_used"]]
         held = None if known is None else known.subset(maps.meta["images_used"])
+        if held is None and flat:
+            from matcap.refine.flat import flat_lights
+
+            held, _ = flat_lights(images, maps.mask)
         res = refine(images, maps_sub, quick, lights=held)
         pred = np.clip(res.prediction[:, sub], 0.0, 1.0)
         photo = np.stack([im[sub] for im in images])
@@ -842,7 +884,7 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
 
 def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,
                 constants: dict[str, float] | None = None, *, progress: bool = False, seed: int = 0,
-                device: str = "cpu", lights=None):
+                device: str = "cpu", lights=None, flat: bool = False):
     """Run :func:`matcap.refine.refine` on ``maps`` (the networks' output) and the photos they came from.
 
     Returns ``(refined maps, writer)``: ``writer(folder)`` writes lights.json / fit.json / residual.png /
@@ -850,7 +892,8 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     (``refine.normal_change_deg_mean``); ``--constant`` maps stay constant. A light-variation warning is printed,
     and where the maps are kept, a note saying why and what to do (give the lights; the glossy look, point
     lights where the near-lamp check did not run).
-    ``lights``: :class:`matcap.lightfiles.KnownLights` of ``images`` (held by the fit), or None (estimated).
+    ``lights``: :class:`matcap.lightfiles.KnownLights` of ``images`` (held by the fit), or None (estimated);
+    ``flat``: a flat sample (:func:`matcap.refine.refine`'s ``flat``).
     """
     import sys
 
@@ -861,7 +904,7 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     held = {f"prior_{'metal' if k == 'metallic' else 'rough'}": 1e4 for k in (constants or {})}
     if held:  # --constant maps stay where the user put them
         s = dataclasses.replace(s, **held)
-    result = refine(images, maps, s, progress=progress, lights=lights)
+    result = refine(images, maps, s, progress=progress, lights=lights, flat=flat)
     if result.warning:
         print(f"warning: {result.warning}", file=sys.stderr)
     lin = result.report.get("linear") or {}
@@ -882,13 +925,16 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     refined.meta = dict(maps.meta)
     r = result.report
     refined.meta["refine"] = {
-        "lights": lights.record() if lights is not None else {"source": "estimated"},
+        "lights": (lights.record() if lights is not None else
+                   r["lights"] if "lights" in r else {"source": "estimated"}),
         "psnr_db_mean": r["psnr_db_mean"], "normal_change_deg_mean": r["normal_change_deg_mean"],
-        "light_model": ("point" if lin.get("check") == "near lamps" else s.light_model) if lights is None
+        "light_model": (r["lights"]["kind"] if "lights" in r else
+                        "point" if lin.get("check") == "near lamps" else s.light_model) if lights is None
         else lights.record()["kind"],  # what was fitted
         "seconds": r["timings"]["total_s"],
         "weak_light_variation_fraction": r["light_variation"]["weak_fraction"],
         "kept_network_maps": r["kept_network_maps"],
+        **({"flat_lamps": r["flat"]["lamps"]} if "flat" in r and "lamps" in r["flat"] else {}),
         "files": ["lights.json", "fit.json", "residual.png", "light_variation.png"],
     }
     refined.meta["timings"] = dict(maps.meta.get("timings", {}), refine_s=r["timings"]["total_s"])

@@ -43,7 +43,8 @@ class KnownLights:
     positions: (K, 3) point-light positions in the framing plane's units (``docs/lights.md``) where the file
         held point lights (a previous capture's near lamps), else None; ``directions`` are then toward the
         object's centre;
-    source: "file" or "ball"; path: the file read; matched: how rows met photos ("name", "order", "names.txt").
+    source: "file", "ball" or "estimated" (a flat sample's lamps, found from their falloff); path: the file read
+        ("" where none was); matched: how rows met photos ("name", "order", "names.txt").
     """
 
     directions: np.ndarray
@@ -65,7 +66,7 @@ class KnownLights:
 
     def record(self) -> dict:
         """capture.json / fit.json summary."""
-        return {"source": self.source, "file": self.path, "matched_by": self.matched,
+        return {"source": self.source, "file": self.path or None, "matched_by": self.matched,
                 "intensities": "given" if self.intensities is not None else "fitted",
                 "kind": "point" if self.positions is not None else "directional"}
 

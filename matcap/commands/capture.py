@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from matcap.commands.export import PRESET_NAMES
@@ -62,6 +63,10 @@ def register(sub) -> None:
                    help="a mirror ball (chrome sphere) is in the photos: take the lights from its highlights, found "
                         "by itself ('auto') or inside a mask image of the ball; the ball is kept out of the object's "
                         "mask and calibration.png shows what was found")
+    p.add_argument("--flat", action=argparse.BooleanOptionalAction, default=None,
+                   help="the photos show a flat sample (a material swatch facing the camera): fit it as a plane "
+                        "whose lamps are found from the falloff of their light over it, unless --lights / --ball "
+                        "give them (default: decided from the networks' normals, and said in one line)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
     p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")
@@ -129,8 +134,18 @@ def run(args) -> int:
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
         constants=constants, max_side=args.max_side, relight=relight, export=export, refine=do_refine,
-        refine_settings=settings, lights=args.lights, ball=args.ball,
+        refine_settings=settings, lights=args.lights, ball=args.ball, flat=args.flat,
     )
+    flat = maps.meta.get("flat") or {}
+    lamps = (maps.meta.get("refine") or {}).get("flat_lamps")
+    if flat.get("chosen_by") == "detection" and flat.get("flat"):
+        print(f"note: taken as a flat sample ({flat['why']}): fitted as a plane"
+              + (" under lamps found from their falloff" if lamps == "near" else "")
+              + "; --no-flat takes it as an object", file=sys.stderr)
+    if lamps == "distant":
+        print("note: the lamps were far from the flat sample: their light falls off too little over it to place "
+              "them, so they were estimated as for an object. Give them with --lights FILE or put a mirror ball "
+              "in the photos (--ball auto) for a well-posed fit", file=sys.stderr)
     t = maps.meta["timings"]
     print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "
           f"{'normal + BRDF' if maps.has_brdf else 'normal'} maps, {t['total_s']:.1f} s"

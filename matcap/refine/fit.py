@@ -406,7 +406,7 @@ def _integrable(fit, obs, mask, network, contour, c_normal, contour_weight, equa
     prior = np.where(on[..., None], c_normal, network)
     share = contour_weight * (mask & ~on).sum() / max(int(on.sum()), 1)
     a = integrable_ambiguity(b_img, ok, prior, np.where(on, share, 1.0) * mask, s_lum, equal_lights)
-    if a is None:
+    if a is None or not np.isfinite(a).all() or abs(np.linalg.det(a)) < 1e-12:  # nothing to choose it by
         return fit
     s_new = s_lum @ np.linalg.inv(a)
     b = (fit.normal * fit.albedo[:, None]) @ a.T
@@ -435,21 +435,45 @@ def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSett
     return None
 
 
-def _photo_normals(obs, mask, network, s_lum, report=None):
+def _photo_normals(obs, mask, network, s_lum, report=None, positions=None, chunk: int = 1 << 18):
     """Calibrated photometric-stereo normals (H, W, 3) of the photos ``obs`` (K, H, W, 3) under the lights
-    ``s_lum`` (K, 3: direction times luminance irradiance): robust Lambertian least squares where a pixel is lit in
-    4 photos or more, the networks' normals ``network`` elsewhere. They are both the start and the prior of the
-    per-pixel stage. Returns (normals, report: ``solved_fraction``); ``report`` given: reused (a downsampled
-    copy)."""
+    ``s_lum`` (K, 3: direction times luminance irradiance at the object's centre): robust Lambertian least squares
+    where a pixel is lit in 4 photos or more, the networks' normals ``network`` elsewhere. ``positions`` (K, 3):
+    the lamps' positions on the framing plane's world units (near lamps): each pixel then gets its own direction
+    toward each lamp and the irradiance falls off with the squared distance. They are both the start and the prior
+    of the per-pixel stage. Returns (normals, report: ``solved_fraction``); ``report`` given: reused (a
+    downsampled copy). Pixels are solved ``chunk`` at a time."""
     from matcap.refine.linear import solve_normals
 
     rows, cols = np.nonzero(mask)
-    n, _, solved = solve_normals(_luminance(obs, rows, cols), s_lum, network[rows, cols])
     start = network.copy()
-    start[rows, cols] = n
+    solved_count = 0
+    for a in range(0, len(rows), chunk):
+        r, c = rows[a:a + chunk], cols[a:a + chunk]
+        lights = s_lum if positions is None else _near_vectors(s_lum, positions, mask, r, c)
+        n, _, solved = solve_normals(_luminance(obs, r, c), lights, network[r, c])
+        start[r, c] = n
+        solved_count += int(solved.sum())
     if report is None:
-        report = {"solved_fraction": round(float(solved.mean()), 4)}
+        report = {"solved_fraction": round(solved_count / max(len(rows), 1), 4)}
     return start, report
+
+
+def _near_vectors(s_lum: np.ndarray, positions: np.ndarray, mask: np.ndarray, rows, cols) -> np.ndarray:
+    """(K, P, 3) per-pixel light vectors of lamps at ``positions`` (K, 3) whose irradiance times direction at the
+    mask's centroid is ``s_lum`` (K, 3), at the pixels (rows, cols) of a ``mask``-sized image."""
+    import torch
+
+    from matcap.refine.model import plane_positions
+
+    h, w = mask.shape
+    pos = plane_positions(torch.from_numpy(np.asarray(rows)), torch.from_numpy(np.asarray(cols)), h, w).double().numpy()
+    centre = _centre(torch, mask).double().numpy()
+    p = np.asarray(positions, np.float64)
+    q = p[:, None, :] - pos[None]
+    r2 = (q * q).sum(-1, keepdims=True)
+    r2c = ((p - centre) ** 2).sum(-1)[:, None, None]
+    return np.linalg.norm(s_lum, axis=1)[:, None, None] * q / np.sqrt(r2) * (r2c / r2)
 
 
 def _init_lights(torch, prob: _Problem, s: RefineSettings, device, directions=None):
@@ -530,11 +554,16 @@ def _centre(torch, mask: np.ndarray):
 
 
 def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
-           progress: bool | Callable[[str, int, int, float], None] = False, lights=None) -> RefineResult:
+           progress: bool | Callable[[str, int, int, float], None] = False, lights=None,
+           flat: bool = False) -> RefineResult:
     """Fit lights and maps to the photos.
 
     images: K (H, W, 3) float32 linear RGB photos (at the maps' size); maps: the networks' :class:`MaterialMaps`
     (missing BRDF maps start from ``with_defaults``). Deterministic for ``settings.seed`` on one device.
+    ``lights``: a :class:`matcap.lightfiles.KnownLights` per photo, held by the fit (:func:`_refine_known`).
+    ``flat``: the photos show a flat sample facing the camera: without ``lights``, its lamps are found from the
+    falloff of their light over the plane (:func:`matcap.refine.flat.flat_lights`) and held like known ones; where
+    the falloff does not place them (distant lamps), they are estimated as an object's.
 
     Where the photos fail only the Lambertian part of the check (residual / inliers: a near lamp's falloff, a glossy
     object, or light that is not one lamp per photo), the fit runs again without it, with lights whose distance
@@ -550,8 +579,17 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     torch.use_deterministic_algorithms(True, warn_only=True)  # bit-for-bit repeatable for a seed (measured)
     try:
         s = settings or RefineSettings()
+        if lights is None and flat:
+            from matcap.refine.flat import flat_lights
+
+            lights, found = flat_lights(images, maps.mask)
+            if lights is None:  # distant lamps: estimated as an object's are, what the falloff said recorded
+                result = refine(images, maps, s, progress)
+                result.report["flat"] = found
+                return result
+            return _refine_known(torch, images, maps, s, progress, lights, flat=found)
         if lights is not None:
-            return _refine_known(torch, images, maps, s, progress, lights)
+            return _refine_known(torch, images, maps, s, progress, lights, flat={} if flat else None)
         point = s.light_model == "point"
         first = _refine(torch, images, maps, s, progress, near=point)
         lin = first.report.get("linear") or {}
@@ -603,7 +641,8 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
         torch.use_deterministic_algorithms(was[0], warn_only=was[1])
 
 
-def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress, known) -> RefineResult:
+def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress, known,
+                  flat: dict | None = None) -> RefineResult:
     """The fit with lights the user knows (:class:`matcap.lightfiles.KnownLights`, one per photo).
 
     Stages: (1) lights: the given directions (and point-light positions) are held; the per-photo intensities (or,
@@ -611,7 +650,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     fitted, first by semi-calibrated Lambertian least squares (:func:`known_irradiance`), then jointly with a
     subsample's maps under the Principled model; (2) the per-pixel solve (:func:`_solve_maps`) from calibrated
     photometric-stereo normals; (3) outputs. With the lights known there is no bas-relief family to choose from,
-    so nothing is gated: the maps are always the fitted ones.
+    so nothing is gated: the maps are always the fitted ones. ``flat``: what :func:`matcap.refine.flat.flat_lights`
+    found (empty where the lights were given), recorded in fit.json as ``flat``.
     """
     t_start = time.perf_counter()
     ph = _prepare(images, maps, s)
@@ -636,17 +676,19 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         dist = np.linalg.norm(rel, axis=1)
         directions, inv_distance = rel / np.maximum(dist, 1e-12)[:, None], 1.0 / np.maximum(dist, 1e-12)
     given = None if known.intensities is None else np.asarray(known.intensities, np.float64)
+    if given is not None and inv_distance is not None:  # a point light's radiant intensity -> irradiance at the centre
+        given = given * inv_distance[:, None] ** 2
     luma = np.asarray(LUMA, np.float64)
     rows_l, cols_l = np.nonzero(mask_l)
     irr = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, arr_l["normal"][rows_l, cols_l],
                            None if given is None else given @ luma)
     s_lum = directions * irr[:, None]
-    start, photo_report = _photo_normals(obs, mask, arrays["normal"], s_lum)
+    start, photo_report = _photo_normals(obs, mask, arrays["normal"], s_lum, positions=known.positions)
     arrays = dict(arrays, normal=start)
     if hw_l == (h, w):
         arr_l, start_l = arrays, start
     else:
-        start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, photo_report)
+        start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, photo_report, positions=known.positions)
         arr_l = dict(arr_l, normal=start_l)
     n_l = int(mask_l.sum())
     idx = np.sort(rng.choice(n_l, size=min(n_l, s.light_pixels), replace=False))
@@ -677,6 +719,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     timings["total_s"] = time.perf_counter() - t_start
     report = {
         "lights": {**known.record(), "directions": "held", "solved_fraction": photo_report["solved_fraction"]},
+        **({"flat": flat} if flat is not None else {}),
         "psnr_db": [round(p, 3) for p in out.psnr],
         "psnr_db_mean": round(float(np.mean(out.psnr)), 3),
         "residual_mean": round(float(np.nanmean(out.residual)), 5),

@@ -180,21 +180,28 @@ def solve_normals(luminance: np.ndarray, lights: np.ndarray, normal: np.ndarray,
     """Robust Lambertian normals of P pixels given the lights: calibrated photometric stereo.
 
     luminance: (K, P); lights: (K, 3) irradiance times direction (as :class:`LinearFit` gives them, in the units
-    of ``luminance``); normal: (P, 3) start (kept where a pixel is lit in fewer than 4 photos). Returns (normal (P,
-    3) unit, albedo (P,), solved (P,) bool).
+    of ``luminance``), or (K, P, 3) one such vector per pixel (lamps near enough for it to change across the
+    object); normal: (P, 3) start (kept where a pixel is lit in fewer than 4 photos). Returns (normal (P, 3) unit,
+    albedo (P,), solved (P,) bool).
     """
     y = np.asarray(luminance, np.float64)
     s = np.asarray(lights, np.float64)
     n0 = np.asarray(normal, np.float64)
-    b = n0 * np.maximum(np.mean(y, axis=0) / np.maximum(np.mean(np.abs(s @ n0.T), axis=0), 1e-9), 1e-6)[:, None]
-    w = _weights(y, s @ b.T, cauchy, shadow)
+    if s.ndim == 3:
+        shade = lambda b: np.einsum("kpi,pi->kp", s, b)  # noqa: E731
+        normal_eq = lambda w: (np.einsum("kp,kpi,kpj->pij", w, s, s), np.einsum("kp,kp,kpi->pi", w, y, s))  # noqa
+    else:
+        shade = lambda b: s @ b.T  # noqa: E731
+        normal_eq = lambda w: (_outer_sum(w.T, s), (w * y).T @ s)  # noqa: E731
+    b = n0 * np.maximum(np.mean(y, axis=0) / np.maximum(np.mean(np.abs(shade(n0)), axis=0), 1e-9), 1e-6)[:, None]
+    w = _weights(y, shade(b), cauchy, shadow)
     solved = np.zeros(len(n0), bool)
     for _ in range(rounds):
-        b_new = _solve3(_outer_sum(w.T, s), (w * y).T @ s)
+        b_new = _solve3(*normal_eq(w))
         ok = (w.sum(0) >= 3.5) & np.isfinite(b_new).all(axis=1) & (b_new[:, 2] > 0)
         solved = ok
         b = np.where(ok[:, None], b_new, b)
-        w = _weights(y, s @ b.T, cauchy, shadow)
+        w = _weights(y, shade(b), cauchy, shadow)
     size = np.linalg.norm(b, axis=1)
     n = np.where(solved[:, None], b / np.maximum(size, 1e-12)[:, None], n0)
     return n.astype(np.float32), size.astype(np.float32), solved

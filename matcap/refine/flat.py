@@ -1,0 +1,353 @@
+"""Flat samples: a material swatch taken as a plane facing the camera, and the lamps that lit it.
+
+A plane's mean normal is the camera axis, so a lamp a few sample widths away shows itself in the photos' falloff:
+photo k's irradiance at plane point x is ``I_k * h_k / |p_k - x|^3`` (a lamp at ``p_k``, ``h_k`` its height above
+the plane), and the ratio of two photos at one pixel cancels the albedo. :func:`plane_lamps` fits every lamp's
+position and relative intensity to those ratios (log domain, robust, the per-pixel albedo profiled out).
+From far away the falloff is flat and tells nothing; the lights' directions then come from how the surface's small
+tilts (the networks' normals) brighten and darken under each photo (:func:`plane_directions`).
+
+:func:`check_flat` says whether a capture looks like a flat sample (the networks' normals close to the camera axis
+over most of a well-filled frame). Positions are in the framing plane's world units (:mod:`renderers.plane`: the
+plane z = 0, x from -1 to 1 across the image), as ``lights.json`` stores point lights.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from matcap.errors import MatcapError
+
+LUMA = (0.2126, 0.7152, 0.0722)
+
+
+@dataclass
+class FlatCheck:
+    """Whether the networks' normals describe a flat sample (:func:`check_flat`).
+
+    flat: the verdict; coverage: share of the frame inside the mask; tilt_mean_deg: angle between the mean normal
+    and the camera axis; tilt_p90_deg: 90th percentile of the per-pixel angle to the camera axis."""
+
+    flat: bool
+    coverage: float
+    tilt_mean_deg: float
+    tilt_p90_deg: float
+
+    def describe(self) -> str:
+        return (f"the networks' normals lie within {self.tilt_p90_deg:.0f} degrees of the camera axis on 90% of "
+                f"{self.coverage:.0%} of the frame")
+
+
+#: check_flat's rule: the sample fills at least this share of the frame ...
+FLAT_COVERAGE = 0.5
+#: ... its mean normal is within this many degrees of the camera axis ...
+FLAT_MEAN_TILT = 10.0
+#: ... and 90 % of its normals within this many.
+FLAT_P90_TILT = 30.0
+
+
+def check_flat(normal: np.ndarray, mask: np.ndarray) -> FlatCheck:
+    """normal: (H, W, 3) unit camera-space normals (the networks'); mask: (H, W) bool. A flat sample fills at least
+    ``FLAT_COVERAGE`` of the frame, its mean normal within ``FLAT_MEAN_TILT`` degrees of the camera axis and 90 % of
+    its normals within ``FLAT_P90_TILT``: an object's silhouette bends its normals away from the camera."""
+    mask = np.asarray(mask, bool)
+    n = np.asarray(normal, np.float64)[mask]
+    coverage = float(mask.mean())
+    if len(n) == 0:
+        return FlatCheck(False, 0.0, 90.0, 90.0)
+    tilt = np.degrees(np.arccos(np.clip(n[:, 2] / np.maximum(np.linalg.norm(n, axis=1), 1e-12), -1.0, 1.0)))
+    mean = n.mean(0)
+    mean_tilt = float(np.degrees(np.arccos(np.clip(mean[2] / max(np.linalg.norm(mean), 1e-12), -1.0, 1.0))))
+    p90 = float(np.percentile(tilt, 90))
+    flat = coverage >= FLAT_COVERAGE and mean_tilt <= FLAT_MEAN_TILT and p90 <= FLAT_P90_TILT
+    return FlatCheck(flat, round(coverage, 4), round(mean_tilt, 3), round(p90, 3))
+
+
+def check_plane_mask(mask: np.ndarray) -> None:
+    """A flat sample's mask must be one region of the frame, not scattered pieces (one line otherwise)."""
+    import cv2
+
+    mask = np.asarray(mask, bool)
+    if mask.sum() < 64:
+        raise MatcapError(f"a flat sample needs at least 64 pixels inside its mask, got {int(mask.sum())}")
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    if (areas >= 0.05 * mask.sum()).sum() > 1:
+        raise MatcapError(f"the mask holds {(areas >= 0.05 * mask.sum()).sum()} separate regions; a flat sample is "
+                          f"one plane (mask one region, or leave out --flat)")
+
+
+@dataclass
+class PlaneLamps:
+    """The lamps of a flat sample's photos (:func:`plane_lamps`).
+
+    positions: (K, 3) lamp positions, world units of the framing plane (z = height above it); directions: (K, 3)
+    unit vectors from ``centre`` toward each lamp; distance: (K,) distances from ``centre``, world units;
+    intensity: (K,) relative luminance irradiance at ``centre`` on a surface facing the lamp (mean 1); centre:
+    (3,) the mask's centroid on the plane; width: the sample's width (world units: the longer side of the mask's
+    bounding box); residual: RMS relative residual of the near-light photometric stereo (0.01: 1 %);
+    residual_distant: the same with every lamp taken as distant (a directional light): where it is not larger,
+    the falloff did not place the lamps (:attr:`near`)."""
+
+    positions: np.ndarray
+    directions: np.ndarray
+    distance: np.ndarray
+    intensity: np.ndarray
+    centre: np.ndarray
+    width: float
+    residual: float
+    residual_distant: float
+
+    @property
+    def near(self) -> bool:
+        """Whether the falloff placed the lamps: distant lamps leave a residual of at least ``NEAR_FLOOR`` and the
+        lamps' distances cut it to at most ``NEAR_GAIN`` of that."""
+        return self.residual_distant >= NEAR_FLOOR and self.residual <= NEAR_GAIN * self.residual_distant
+
+    @property
+    def distance_widths(self) -> np.ndarray:
+        """(K,) distances in sample widths."""
+        return self.distance / self.width
+
+
+def _luminance(images) -> np.ndarray:
+    stack = np.stack([np.asarray(im, np.float32) for im in images])
+    return stack @ np.asarray(LUMA, np.float32)
+
+
+def _small(lum: np.ndarray, mask: np.ndarray, side: int):
+    """(K, h, w) luminance and (h, w) mask of a copy whose longer side is at most ``side`` (area average; a pixel
+    counts where its whole area lies inside the mask)."""
+    import cv2
+
+    k, h, w = lum.shape
+    f = min(1.0, side / max(h, w))
+    hw = (max(4, round(h * f)), max(4, round(w * f)))
+    if hw == (h, w):
+        return lum, np.asarray(mask, bool)
+    m = cv2.resize(np.asarray(mask, np.float32), hw[::-1], interpolation=cv2.INTER_AREA)
+    out = np.stack([cv2.resize(np.ascontiguousarray(x * mask), hw[::-1], interpolation=cv2.INTER_AREA) for x in lum])
+    keep = m > 0.999
+    return out / np.maximum(m, 1e-6)[None], keep
+
+
+def _log_obs(lum: np.ndarray, mask: np.ndarray):
+    """Log luminance (K, P) and its weights (K, P) at the mask's pixels: clipped and black observations weigh 0."""
+    y = lum[:, mask].astype(np.float64)
+    top = y.max(axis=1, keepdims=True)
+    floor = 1e-4 * max(float(np.percentile(y, 99)), 1e-12)
+    w = ((y > floor) & (y < 0.98 * top)).astype(np.float64)
+    return np.log(np.maximum(y, floor)), w
+
+
+def _lamp_lm(torch, theta, fn, y, w, cauchy: float, steps: int):
+    """Levenberg-Marquardt for K independent lamps: theta (K, Q) parameters, fn(theta_k (Q,), k) -> (P,) model log
+    luminance, y / w (K, P) observations and their weights; Cauchy loss of scale ``cauchy`` by reweighting.
+    Returns theta (K, Q)."""
+    k_count, q_count = theta.shape
+    ks = torch.arange(k_count)
+    jac_fn = torch.func.vmap(torch.func.jacfwd(fn), in_dims=(0, 0))
+    model_fn = torch.func.vmap(fn, in_dims=(0, 0))
+    lam = torch.full((k_count,), 1e-3, dtype=theta.dtype)
+    eye = torch.eye(q_count, dtype=theta.dtype)
+    for _ in range(steps):
+        e = y - model_fn(theta, ks)
+        wr = w / (1.0 + (e / cauchy) ** 2)
+        jac = jac_fn(theta, ks)  # (K, P, Q)
+        jtj = torch.einsum("kpi,kp,kpj->kij", jac, wr, jac)
+        jtr = torch.einsum("kpi,kp,kp->ki", jac, wr, e)
+        cost = (wr * e * e).sum(1)
+        damp = jtj + lam[:, None, None] * torch.diag_embed(torch.diagonal(jtj, dim1=1, dim2=2).clamp(min=1e-12))
+        step = torch.linalg.solve(damp + 1e-12 * eye, jtr[..., None])[..., 0]
+        trial = theta + step
+        e_new = y - model_fn(trial, ks)
+        new_cost = (wr * e_new * e_new).sum(1)
+        better = torch.isfinite(new_cost) & (new_cost < cost)
+        theta = torch.where(better[:, None], trial, theta)
+        lam = torch.where(better, (lam / 3.0).clamp(min=1e-9), (lam * 4.0).clamp(max=1e9))
+        if float(step.abs().max()) < 1e-8:
+            break
+    return theta
+
+
+def _varpro(torch, lamp, vectors, y_np, w_np, cauchy: float, steps: int):
+    """Levenberg-Marquardt on the lamps (K, 5: x, y, log height, log intensity, log room light) with every pixel's
+    albedo times normal ``b`` (3,) solved by weighted least squares for them at each evaluation (variable
+    projection): photo k at pixel x is ``b(x) . (I_k (p_k - x) / |p_k - x|^3 + A_k z)``. ``vectors(lamp)`` gives
+    (p_k - x (K, P, 3), |p_k - x|^2 (K, P)); y_np / w_np (K, P) log luminance and its weights; relative residuals
+    under a Cauchy loss of scale ``cauchy``. Returns (lamps, RMS relative residual, b (P, 3) for them)."""
+    k_count = lamp.shape[0]
+    y_lin = torch.from_numpy(np.exp(y_np))
+    w_obs = torch.from_numpy(w_np)
+    ez = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+
+    def lights_b(theta, weight):  # (K * 5,) -> light vectors (K, P, 3), b (P, 3)
+        t = theta.reshape(k_count, 5)
+        q, r2 = vectors(t)
+        light = t[:, 3].exp()[:, None, None] * q / r2[..., None] ** 1.5 + t[:, 4].exp()[:, None, None] * ez
+        wl = weight / y_lin ** 2
+        a = torch.einsum("kp,kpi,kpj->pij", wl, light, light)
+        r = torch.einsum("kp,kp,kpi->pi", wl, y_lin, light)
+        tr = torch.diagonal(a, dim1=1, dim2=2).sum(-1)[:, None, None]
+        return light, torch.linalg.solve(a + torch.eye(3, dtype=a.dtype) * (1e-9 * tr + 1e-30), r[..., None])[..., 0]
+
+    def residual(theta, weight):  # (K * 5,) -> (K * P,)
+        light, b = lights_b(theta, weight)
+        pred = torch.einsum("kpi,pi->kp", light, b)
+        return (weight.sqrt() * (y_lin - pred) / y_lin).reshape(-1)
+
+    def solve_b(theta):
+        e = residual(theta, w_obs).reshape(k_count, -1)
+        return lights_b(theta, w_obs / (1.0 + (e / w_obs.sqrt().clamp(min=1e-9) / cauchy) ** 2))[1].numpy()
+
+    theta = lamp.reshape(-1).clone()
+    lam = 1e-3
+    for _ in range(steps):
+        e = residual(theta, w_obs).reshape(k_count, -1)
+        irls = w_obs / (1.0 + (e / w_obs.sqrt().clamp(min=1e-9) / cauchy) ** 2)
+        r = residual(theta, irls)
+        jac = torch.func.jacfwd(lambda t: residual(t, irls))(theta)
+        jtj, jtr = jac.T @ jac, jac.T @ r
+        cost = float(r @ r)
+        while lam < 1e9:
+            step = torch.linalg.solve(jtj + lam * torch.diag(torch.diag(jtj).clamp(min=1e-12)), -jtr)
+            new = residual(theta + step, irls)
+            if torch.isfinite(new).all() and float(new @ new) < cost:
+                theta, lam = theta + step, max(lam / 3.0, 1e-9)
+                break
+            lam *= 4.0
+        if lam >= 1e9 or cost - float(new @ new) < 1e-6 * cost:  # no step left that lowers the loss noticeably
+            break
+    e = residual(theta, w_obs)
+    return theta.reshape(k_count, 5), float(torch.sqrt((e * e).sum() / w_obs.sum().clamp(min=1))), solve_b(theta)
+
+
+def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, cauchy: float = 0.05,
+                starts_widths: tuple[float, ...] = (0.75, 1.5, 3.0, 6.0)) -> PlaneLamps:
+    """The lamp of every photo of a flat sample, from the falloff of its light over the plane.
+
+    images: K (H, W, 3) linear RGB photos (any common scale); mask: (H, W) bool, the sample. Fitted on a copy whose
+    longer side is ``side`` pixels, in two stages, each by Levenberg-Marquardt per lamp with a Cauchy loss of scale
+    ``cauchy`` (log units: highlights and cast shadows weigh little); clipped and black observations left out.
+
+    1. The plane: every normal the camera axis (+z); photo k's log luminance at plane point x is
+       ``a(x) + log(I_k h_k / |p_k - x|^3 + A_k)``: a per-pixel log albedo ``a`` shared by the photos (re-solved as
+       the weighted mean between steps), a lamp at ``p_k`` (``h_k`` its height) of intensity ``I_k``, a faint room
+       light ``A_k``. From several start distances (``starts_widths``, in sample widths; every lamp above the
+       brightest part of its photo relative to the others); each photo keeps its best.
+    2. Near-light photometric stereo: the lamps (and their room light) again, now with every pixel's albedo times
+       normal solved by least squares under the lamps' per-pixel light vectors at each step (variable projection:
+       the surface's small tilts, which shade every photo differently, are no longer taken for falloff). At most
+       ``4 * steps`` steps; the residuals are relative, so every photo weighs alike. The same with every lamp
+       distant gives ``residual_distant``: distant lamps leave no falloff to place them.
+    """
+    import torch
+
+    from matcap.refine.model import plane_positions
+
+    mask = np.asarray(mask, bool)
+    k_count = len(images)
+    if k_count < 3:
+        raise MatcapError(f"finding the lamps of a flat sample needs at least 3 photos, got {k_count}")
+    lum = _luminance(images)
+    if lum.shape[1:] != mask.shape:
+        raise MatcapError(f"the mask is {mask.shape[1]}x{mask.shape[0]} but the photos {lum.shape[2]}x{lum.shape[1]}")
+    h, w = mask.shape
+    small, keep = _small(lum, mask, side)
+    if keep.sum() < 16:
+        raise MatcapError("the flat sample's mask is too small to find its lamps (fewer than 16 pixels at "
+                          f"{small.shape[2]}x{small.shape[1]})")
+    y_np, w_np = _log_obs(small, keep)
+    rows, cols = np.nonzero(keep)
+    pos = plane_positions(torch.from_numpy(rows), torch.from_numpy(cols), *keep.shape).double()
+    full_rows, full_cols = np.nonzero(mask)
+    centre = plane_positions(torch.from_numpy(full_rows), torch.from_numpy(full_cols), h, w).double().mean(0)
+    xy = pos[:, :2]
+    width = float(max((xy[:, 0].max() - xy[:, 0].min()), (xy[:, 1].max() - xy[:, 1].min()))) + 2.0 / keep.shape[1]
+    y = torch.from_numpy(y_np)
+    w_obs = torch.from_numpy(w_np)
+
+    def vectors(lamp, distant: bool = False):  # (K, 5) lamps -> (K, P, 3) p_k - x, (K, P) |p_k - x|^2
+        xy_k = lamp[:, None, :2] - (0.0 if distant else pos[None, :, :2])
+        q = torch.cat([xy_k.expand(-1, len(pos), 2), lamp[:, 2].exp()[:, None, None].expand(-1, len(pos), 1)], -1)
+        return q, (q * q).sum(-1)
+
+    # ---- 1. the plane
+    ratio = y_np - (y_np * w_np).sum(0) / np.maximum(w_np.sum(0), 1e-9)
+    ratio = np.where(w_np > 0, ratio, -np.inf)
+    top = np.argsort(ratio, axis=1)[:, -max(4, len(rows) // 50):]
+    foot = torch.from_numpy(np.stack([xy.numpy()[t].mean(0) for t in top]))  # (K, 2)
+    alpha = torch.zeros(len(pos), dtype=torch.float64)
+
+    def plane_fn(t, k):  # t: x, y, log height, log intensity, log ambient
+        q = torch.cat([t[:2] - pos[:, :2], t[2].exp().expand(len(pos), 1)], -1)
+        direct = t[3] + torch.log(q[:, 2]) - 1.5 * torch.log((q * q).sum(-1))
+        return alpha + torch.logaddexp(direct, t[4].expand_as(direct))
+
+    def per_photo_loss(theta):
+        e = y - torch.func.vmap(plane_fn, in_dims=(0, 0))(theta, torch.arange(k_count))
+        return (w_obs * torch.log1p((e / cauchy) ** 2)).sum(1) / w_obs.sum(1).clamp(min=1.0)
+
+    tried = []
+    for sw in starts_widths:
+        dist = sw * width
+        height = torch.sqrt(torch.clamp(dist ** 2 - ((foot - centre[:2]) ** 2).sum(1), min=(0.3 * dist) ** 2))
+        theta = torch.cat([foot, torch.log(height)[:, None], torch.zeros(k_count, 2, dtype=torch.float64)], 1)
+        alpha = torch.zeros(len(pos), dtype=torch.float64)
+        for it in range(4):
+            if it == 0:  # start: intensities at the mean level, a room light 5 log units fainter
+                theta[:, 4] = -60.0
+                theta[:, 3] = ((y - plane_fn_batch(plane_fn, theta, k_count)) * w_obs).sum(1) / w_obs.sum(1)
+                theta[:, 4] = theta[:, 3] - 3.0 * torch.log(torch.tensor(dist)) - 5.0
+            theta = _lamp_lm(torch, theta, plane_fn, y, w_obs, cauchy, steps)
+            model = plane_fn_batch(plane_fn, theta, k_count) - alpha
+            alpha = ((y - model) * w_obs).sum(0) / w_obs.sum(0).clamp(min=1e-9)
+        tried.append((theta, per_photo_loss(theta), alpha))
+    losses = torch.stack([lo for _, lo, _ in tried])
+
+    best = losses.argmin(0)
+    lamp = torch.stack([tried[int(b)][0][k] for k, b in enumerate(best)])
+    alpha = tried[int(losses.sum(1).argmin())][2]
+
+    # ---- 2. near-light photometric stereo: the lamps with every pixel's albedo times normal solved for them
+    lamp, resid, _ = _varpro(torch, lamp, vectors, y_np, w_np, cauchy, 4 * steps)
+    _, resid_distant, _ = _varpro(torch, lamp, lambda t: vectors(t, distant=True), y_np, w_np, cauchy, 4 * steps)
+    positions = torch.cat([lamp[:, :2], lamp[:, 2:3].exp()], 1)
+    rel = positions - centre
+    dist = rel.norm(dim=1)
+    irr = torch.exp(lamp[:, 3]) / dist ** 2  # at the centre, on a surface facing the lamp (relative)
+    irr = irr / irr.mean()
+    return PlaneLamps(positions.numpy(), (rel / dist[:, None]).numpy(), dist.numpy(), irr.numpy(), centre.numpy(),
+                      width, resid, resid_distant)
+
+
+def plane_fn_batch(fn, theta, k_count):
+    import torch
+
+    return torch.func.vmap(fn, in_dims=(0, 0))(theta, torch.arange(k_count))
+
+
+#: The falloff placed the lamps where their distances cut the residual of distant lamps to at most this share of it
+NEAR_GAIN = 0.5
+#: ... and that residual (relative RMS) is at least this: a falloff that shows above the photos' noise.
+NEAR_FLOOR = 0.005
+
+
+def flat_lights(images, mask: np.ndarray):
+    """The lamps of a flat sample's photos, to be held by the fit: (:class:`matcap.lightfiles.KnownLights` of point
+    lights with fitted intensities, or None where the falloff did not place them (:attr:`PlaneLamps.near`), and
+    fit.json's ``flat`` record)."""
+    from matcap.lightfiles import KnownLights
+
+    lamps = plane_lamps(images, mask)
+    widths = lamps.distance_widths
+    record = {"lamps": "near" if lamps.near else "distant", "found_from": "the falloff over the plane",
+              "residual": round(lamps.residual, 5), "residual_distant_lamps": round(lamps.residual_distant, 5)}
+    if not lamps.near:
+        return None, record
+    record.update({"distance_widths_median": round(float(np.median(widths)), 3),
+                   "distance_widths": [round(float(v), 3) for v in widths], "sample_width": round(lamps.width, 5)})
+    known = KnownLights(lamps.directions.astype(np.float64), None, "estimated", "", "order",
+                        lamps.positions.astype(np.float64))
+    return known, record

@@ -1,0 +1,122 @@
+"""Flat samples: the plane check, the lamps found from their falloff, the fit that holds them, and bad input."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from matcap.errors import MatcapError
+from matcap.refine.flat import check_flat, check_plane_mask, flat_lights, plane_lamps
+from matcap.refine.model import plane_positions
+from scenes.materialmaps import MaterialMaps
+
+
+def _swatch(size: int = 64, seed: int = 0, tilt: float = 0.06):
+    """A Lambertian swatch in the framing plane: normals (H, W, 3) tilted a few degrees by a smooth random field,
+    albedo (H, W, 3) a random texture."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    g = np.stack([cv2.GaussianBlur(rng.normal(size=(size, size)).astype(np.float32), (0, 0), 2.0) for _ in range(2)],
+                 -1)
+    g *= tilt / g.std()
+    n = np.concatenate([g, np.ones((size, size, 1), np.float32)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    albedo = 0.25 + 0.5 * cv2.GaussianBlur(rng.random((size, size, 3)).astype(np.float32), (0, 0), 1.5)
+    return n, albedo
+
+
+def _lamps(k: int, widths: tuple[float, float], seed: int = 1) -> np.ndarray:
+    """(K, 3) lamp positions ``widths`` sample widths (2 world units) from the plane's centre, 25-70 degrees up."""
+    rng = np.random.default_rng(seed)
+    dist = 2.0 * rng.uniform(*widths, k)
+    el = np.radians(rng.uniform(25, 70, k))
+    az = np.linspace(0, 2 * np.pi, k, endpoint=False) + rng.uniform(0, 0.4, k)
+    return np.stack([dist * np.cos(el) * np.cos(az), dist * np.cos(el) * np.sin(az), dist * np.sin(el)], 1)
+
+
+def _photos(n, albedo, lamps, ambient: float = 0.003):
+    """Photos of the swatch under point lamps of equal irradiance at the centre (Lambertian, a faint room light)."""
+    h, w = n.shape[:2]
+    rows, cols = np.nonzero(np.ones((h, w), bool))
+    import torch
+
+    pos = plane_positions(torch.from_numpy(rows), torch.from_numpy(cols), h, w).numpy().reshape(h, w, 3)
+    out = []
+    for p in lamps:
+        q = p - pos
+        r2 = (q * q).sum(-1)
+        cos = np.clip((n * q).sum(-1) / np.sqrt(r2), 0.0, None)
+        out.append((albedo * (0.8 * (p @ p) * cos / r2 / np.pi + ambient)[..., None]).astype(np.float32))
+    return out
+
+
+def _angle(a, b):
+    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1.0, 1.0)))
+
+
+def test_check_flat_tells_a_plane_from_a_sphere():
+    n, _ = _swatch(64)
+    assert check_flat(n, np.ones((64, 64), bool)).flat
+    yy, xx = np.mgrid[-1:1:64j, -1:1:64j]
+    disc = xx ** 2 + yy ** 2 < 0.95
+    sphere = np.dstack([xx, -yy, np.sqrt(np.clip(1 - xx ** 2 - yy ** 2, 0, None))]) * disc[..., None]
+    verdict = check_flat(sphere, disc)
+    assert not verdict.flat and verdict.tilt_p90_deg > 45.0
+
+
+def test_plane_lamps_places_near_lamps_within_5_percent_of_their_distance():
+    n, albedo = _swatch()
+    lamps = _lamps(10, (1.0, 3.0))
+    found = plane_lamps(_photos(n, albedo, lamps), np.ones(n.shape[:2], bool))
+    err = np.linalg.norm(found.positions - lamps, axis=1) / np.linalg.norm(lamps, axis=1)
+    assert found.near and err.max() < 0.05, err
+    assert found.residual < 0.5 * found.residual_distant
+
+
+def test_distant_lamps_are_said_to_be_distant():
+    n, albedo = _swatch()
+    lamps = _lamps(10, (150.0, 300.0))
+    known, record = flat_lights(_photos(n, albedo, lamps), np.ones(n.shape[:2], bool))
+    assert known is None and record["lamps"] == "distant"
+
+
+def test_flat_fit_recovers_the_normals_within_2_degrees():
+    from matcap.refine import RefineSettings, refine
+
+    n, albedo = _swatch()
+    lamps = _lamps(10, (1.0, 3.0))
+    mask = np.ones(n.shape[:2], bool)
+    start = MaterialMaps(normal=np.dstack([np.zeros_like(n[..., :2]), np.ones_like(n[..., :1])]),
+                         mask=mask, basecolor=np.full_like(albedo, 0.5), roughness=np.full(mask.shape, 0.9, np.float32),
+                         metallic=np.zeros(mask.shape, np.float32))
+    result = refine(_photos(n, albedo, lamps), start, RefineSettings(fine_iters=10, coarse_iters=0), flat=True)
+    assert result.report["flat"]["lamps"] == "near" and result.report["lights"]["kind"] == "point"
+    err = _angle(result.maps.normal, n)
+    assert err.mean() < 2.0, err.mean()
+    assert _angle(start.normal, n).mean() > 2.5  # the start was worse than the goal
+
+
+def test_plane_mask_must_be_one_region():
+    mask = np.zeros((64, 64), bool)
+    mask[5:30, 5:30] = True
+    mask[35:60, 35:60] = True
+    with pytest.raises(MatcapError, match="2 separate regions"):
+        check_plane_mask(mask)
+
+
+def test_flat_with_too_few_photos_is_one_line(tmp_path):
+    from matcap import imageio
+
+    photos = tmp_path / "swatch"
+    photos.mkdir()
+    for k in range(2):
+        imageio.write_png(photos / f"{k}.png", np.full((16, 16, 3), 0.3 + 0.1 * k, np.float32))
+    r = subprocess.run([sys.executable, "-m", "matcap", "capture", str(photos), "--flat", "--out",
+                        str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "at least 3 photos" in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", "matcap", "capture", str(photos), "--flat", "--no-refine", "--out",
+                        str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "--no-refine" in r.stderr and r.stderr.count("\n") == 1, r.stderr
