@@ -820,8 +820,8 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
     sub[ys[pick], xs[pick]] = True
     maps_sub = dataclasses.replace(maps, mask=sub)
     base = settings if settings is not None else RefineSettings()
-    quick = dataclasses.replace(base, light_iters=min(base.light_iters, 200), coarse_iters=0,
-                                fine_iters=min(base.fine_iters, 10))
+    quick = base.replace({"lights.iters": min(base.lights.iters, 200), "pixels.coarse_iters": 0,
+                          "pixels.fine_iters": min(base.pixels.fine_iters, 10)})
     rmse = {}
     for lin, cap in caps.items():
         images = [cap.images[i] for i in maps.meta["images_used"]]
@@ -858,9 +858,9 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     from matcap.refine.outputs import write_refine_outputs
 
     s = settings if settings is not None else RefineSettings(seed=seed, device=device)
-    held = {f"prior_{'metal' if k == 'metallic' else 'rough'}": 1e4 for k in (constants or {})}
+    held = {f"priors.{'metal' if k == 'metallic' else 'rough'}": 1e4 for k in (constants or {})}
     if held:  # --constant maps stay where the user put them
-        s = dataclasses.replace(s, **held)
+        s = s.replace(held)
     result = refine(images, maps, s, progress=progress, lights=lights)
     if result.warning:
         print(f"warning: {result.warning}", file=sys.stderr)
@@ -871,8 +871,8 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
               f"their positions in lights.json", file=sys.stderr)
     if result.report.get("kept_network_maps"):
         hint = ""
-        if lin.get("lambertian_only") and s.light_model != "point":
-            tips = (["a glossy object under a far lamp: try --glossy"] if s.trust_ambient <= 0 else []) + (
+        if lin.get("lambertian_only") and s.model.light != "point":
+            tips = (["a glossy object under a far lamp: try --glossy"] if not s.candidates.glossy else []) + (
                 [] if "near_fit" in lin else ["a lamp within a few object sizes: try --light-model point"])
             hint = f" ({'; '.join(tips)})" if tips else ""
         print(f"note: the fit kept the networks' maps: {lin.get('reason')}. Lights you know make the fit "
@@ -884,7 +884,7 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     refined.meta["refine"] = {
         "lights": lights.record() if lights is not None else {"source": "estimated"},
         "psnr_db_mean": r["psnr_db_mean"], "normal_change_deg_mean": r["normal_change_deg_mean"],
-        "light_model": ("point" if lin.get("check") == "near lamps" else s.light_model) if lights is None
+        "light_model": ("point" if lin.get("check") == "near lamps" else s.model.light) if lights is None
         else lights.record()["kind"],  # what was fitted
         "seconds": r["timings"]["total_s"],
         "weak_light_variation_fraction": r["light_variation"]["weak_fraction"],

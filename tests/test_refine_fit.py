@@ -60,8 +60,8 @@ def test_outputs_and_determinism(scene, fitted):
         assert e["kind"] == "directional" and len(e["sh"]) == 9 and all(len(r) == 3 for r in e["sh"])
         assert abs(np.linalg.norm(e["direction"]) - 1) < 1e-5
     assert np.isnan(res.residual[~truth.mask]).all() and np.isfinite(res.residual[truth.mask]).all()
-    again = refine(photos, start, RefineSettings(seed=0, light_iters=30, coarse_iters=0, fine_iters=10))
-    again2 = refine(photos, start, RefineSettings(seed=0, light_iters=30, coarse_iters=0, fine_iters=10))
+    again = refine(photos, start, RefineSettings(seed=0).replace({"lights.iters": 30, "pixels.coarse_iters": 0, "pixels.fine_iters": 10}))
+    again2 = refine(photos, start, RefineSettings(seed=0).replace({"lights.iters": 30, "pixels.coarse_iters": 0, "pixels.fine_iters": 10}))
     assert np.array_equal(again.maps.normal, again2.maps.normal)
     assert again.lights == again2.lights
 
@@ -82,7 +82,7 @@ def test_near_lamps(near_lit, model):
     then fits their distances and keeps that fit (their loss is a fraction of distant lamps'), as `--refine-light
     point` does: measured 3.69 -> 1.94 degrees, light directions 1.7 degrees (median), distances 3.37."""
     truth, lights, photos, start = near_lit
-    res = refine(photos, start, RefineSettings(light_model=model, light_iters=250, fine_iters=100))
+    res = refine(photos, start, RefineSettings().replace({"model.light": model, "lights.iters": 250, "pixels.fine_iters": 100}))
     lin = res.report["linear"]
     assert not res.report["kept_network_maps"] and lin["check"] == "near lamps", lin
     assert "diffuse surface" in lin["reason_lambertian"]
@@ -109,7 +109,7 @@ def test_near_lamps_are_named_in_one_line(near_lit, capsys):
 
     truth, lights, photos, start = near_lit
     names = [f"p{i}.png" for i in range(len(photos))]
-    s = RefineSettings(light_iters=250, coarse_iters=0, fine_iters=10)
+    s = RefineSettings().replace({"lights.iters": 250, "pixels.coarse_iters": 0, "pixels.fine_iters": 10})
     refined, _ = refine_maps(start, photos, names, "linear", s)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "lamps were near the object" in err[0] and "object radii away" in err[0], err
@@ -304,7 +304,7 @@ def test_near_lamp_verdict(radii, share, ratio, model, needle):
     from matcap.refine.fit import _near_verdict
 
     found = {"light_distance_radii": radii, "ambient_share": share, "loss_ratio": ratio}
-    why = _near_verdict(found, RefineSettings(light_model=model))
+    why = _near_verdict(found, RefineSettings().replace({"model.light": model}))
     assert (why is None) if needle is None else (needle in why), why
 
 
@@ -338,7 +338,7 @@ def test_second_looks_run_in_order_and_gate(monkeypatch, radii, near_share, glos
         return F.RefineResult(maps=maps, lights=[], report=rep, residual=None, variation=None)
 
     monkeypatch.setattr(F, "_refine", fake)
-    res = F.refine([], None, RefineSettings(trust_ambient=trust))
+    res = F.refine([], None, RefineSettings().replace({"candidates.glossy": trust > 0, "candidates.glossy_ambient": trust}))
     assert ran == want_looks
     lin = res.report["linear"]
     assert lin.get("check") == want_check

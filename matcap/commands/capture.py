@@ -90,11 +90,12 @@ def add_fit_options(p) -> None:
 
 
 def fit_settings(args, light_model: str, glossy: bool):
-    """RefineSettings from the shared fit options."""
-    from matcap.refine import GLOSSY_TRUST_AMBIENT, RefineSettings
+    """RefineSettings from the shared fit options: ``--light-model`` is ``model.light``, ``--glossy`` /
+    ``--no-glossy`` is ``candidates.glossy``, ``--seed`` and ``--device`` are ``seed`` and ``device``."""
+    from matcap.refine import RefineSettings
 
-    return RefineSettings(light_model=light_model, seed=args.seed, device=args.device,
-                          trust_ambient=GLOSSY_TRUST_AMBIENT if glossy else 0.0)
+    return RefineSettings(seed=args.seed, device=args.device).replace(
+        {"model.light": light_model, "candidates.glossy": glossy})
 
 
 def run(args) -> int:

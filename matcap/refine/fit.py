@@ -33,38 +33,71 @@ from scenes.materialmaps import MaterialMaps
 LUMA = (0.2126, 0.7152, 0.0722)
 
 
-GLOSSY_TRUST_AMBIENT = 0.05  # RefineSettings.trust_ambient by default (``--no-glossy``: 0)
+@dataclass
+class ModelSettings:
+    """What the fit models: the lights' kind, the fixed ambient, which maps move."""
+
+    light: str = "directional"
+    """Estimated lights: "directional", distant lights (where they fail to explain the photos, other candidate light
+    models are tried, see :class:`CandidateSettings`); "point", a lamp per photo whose distance the fit always finds.
+    Known lights keep the kind their file gives."""
+    ambient: str = "shared"
+    """"shared": one order-2 SH ambient for every photo (a fixed room light); "per-image"; "none"."""
+    fit_brdf: bool = True
+    """False: roughness and metallic stay the networks' (normals and base colour are still fitted)."""
 
 
 @dataclass
-class RefineSettings:
-    """Settings of :func:`refine` (recorded in fit.json), grouped by stage. The fit's photo units: the photos are
-    scaled so that their mean over the mask is 0.5. Prior weights are per pixel, against a data term summed over
-    the photos (so more photos weigh more)."""
+class LossSettings:
+    """The data term, in the fit's units (the photos scaled so that their mean over the mask is 0.5)."""
 
-    # -- the light model (estimated lights; known lights keep the kind their file gives)
-    light_model: str = "directional"
-    """"directional": distant lights (where they fail to explain the photos, near lamps are tried, see
-    ``near_check``); "point": a lamp per photo whose distance the fit always finds."""
-    ambient: str = "shared"
-    """"shared": one order-2 SH ambient for every photo (a fixed room light); "per-image"; "none"."""
+    cauchy: float = 0.15
+    """Scale of the Cauchy loss on the photo residuals: shadows, interreflections and highlights the model cannot
+    explain weigh less."""
+    variation_threshold: float = 0.08
+    """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
+    less, down to 0.1, and a warning names the share of such pixels)."""
 
-    # -- lights stage: a downsampled copy, a subsample of its pixels, Adam on lights (and those pixels' maps)
-    light_side: int = 256
+
+@dataclass
+class PriorSettings:
+    """Weights of the prior that holds every pixel near its start, per pixel, against a data term summed over the
+    photos (so more photos weigh more)."""
+
+    normal: float = 0.5
+    """Weight of |n - n_prior|^2 (n_prior: calibrated Lambertian normals from the photos where solved, else the
+    networks')."""
+    base: float = 0.5
+    """Weight of mean_c (log(b + 0.02) - log(b_net + 0.02))^2."""
+    rough: float = 0.5
+    """Weight of (r - r_net)^2."""
+    metal: float = 0.5
+    """Weight of (m - m_net)^2."""
+
+
+@dataclass
+class LightStageSettings:
+    """The light stage: Adam on the lights (and the maps of a pixel subsample) of a downsampled copy."""
+
+    side: int = 256
     """The light fit runs on a copy whose longer side is at most this many pixels."""
-    light_pixels: int = 4096
+    pixels: int = 4096
     """Pixels of that copy taking part in the light fit."""
-    light_iters: int = 400
-    """Adam steps of the light fit."""
-    kept_light_iters: int = 200
+    iters: int = 400
+    """Adam steps of the light fit (and of a near-lamp fit's distances)."""
+    kept_iters: int = 200
     """Adam steps of the light fit where the maps are kept (the lights are fitted to the networks' maps)."""
-    lr_light: float = 0.02
+    lr: float = 0.02
     """Adam step size of the light parameters (directions, log intensities, ambient, inverse distances)."""
     lr_pixel: float = 0.05
     """Adam step size of the subsample's map parameters during the light fit."""
 
-    # -- estimated lights: the Lambertian factorization and its bas-relief choice (matcap.refine.linear)
-    linear_pixels: int = 20000
+
+@dataclass
+class FactorizationSettings:
+    """Estimated lights: the Lambertian factorization and its bas-relief choice (:mod:`matcap.refine.linear`)."""
+
+    pixels: int = 20000
     """Pixels of the light-fit copy used by the factorization (every occluding-contour pixel too)."""
     contour_weight: float = 1.0
     """Weight of the occluding contour's normals against the networks' in fixing the bas-relief."""
@@ -76,69 +109,120 @@ class RefineSettings:
     """Weight of "every photo got about the same irradiance" (one lamp moved at a similar distance) against the
     prior's misfit, relative to the prior's own, in choosing the bas-relief; 0 ignores it."""
 
-    # -- estimated lights: the checks that decide whether the maps may move
-    trust_residual: float = 0.05
+
+@dataclass
+class CheckSettings:
+    """Estimated lights: the factorization's check, which decides whether the photos may move the maps."""
+
+    residual: float = 0.05
     """The factorization must explain the photos to this relative RMS ..."""
-    trust_inliers: float = 0.85
-    """... with this share of inlier observations (else: not distant lights on a matte-like surface);"""
-    trust_solved: float = 0.5
+    inliers: float = 0.85
+    """... with this share of inlier observations (these two: distant lights on a matte-like surface; only the
+    first candidate light model must pass them);"""
+    solved: float = 0.5
     """... under the lights found, this share of the pixels must get a Lambertian normal facing the camera;"""
-    trust_spread: float = 0.02
+    spread: float = 0.02
     """... and the photos' third singular value must be at least this share of the first (a flat sample's
     photos are nearly rank 1: its one normal cannot tell the lights apart)."""
-    trust_ambient: float = GLOSSY_TRUST_AMBIENT
-    """Glossy look: where only the residual / inliers check fails and the near-lamp look is not kept, distant
-    lamps are fitted anyway and kept if the fixed ambient (of that fit and of the near-lamp fit) gives at most this
-    share of the object's irradiance; 0 turns the look off."""
-    trust_ambient_far: float = 0.1
-    """... up to this share where the near-lamp fit left the lamps at least ``far_distance`` object radii away."""
-    far_distance: float = 30.0
-    """Object radii beyond which a near-lamp fit's lamps count as far (a fixed room light lets them stay far)."""
-    near_check: bool = True
-    """Near-lamp look: where only the residual / inliers check fails, fit lamps whose distances the fit finds
-    and keep that fit if the conditions below hold."""
+
+
+@dataclass
+class CandidateSettings:
+    """Estimated lights: the candidate light models tried after distant lights (or point lamps) where only the
+    residual / inliers part of the check failed, and the limits that accept them (:func:`_judge`)."""
+
+    near: bool = True
+    """Near lamps: fit lamps whose distances the fit finds, accepted where the conditions below hold."""
     near_distance: float = 15.0
     """... the median lamp within this many object radii (the radius of the disc as large as the mask);"""
     near_ambient: float = 0.2
-    """... the fixed ambient at most this share of the object's irradiance (with light_model "point": only this);"""
+    """... the fixed ambient at most this share of the object's irradiance (with light model "point": only this);"""
     near_loss_ratio: float = 0.8
     """... and the distances cut the light fit's loss to at most this share of what distant lamps reach ..."""
     near_dark: float = 0.05
     """... unless the fixed ambient is at most this share (a dark room, where highlights dominate the loss)."""
+    glossy: bool = True
+    """Glossy distant lamps (light model "directional" only): distant lamps under the Principled model alone,
+    accepted where the fixed ambient of that fit and of the near-lamp fit before it is small."""
+    glossy_ambient: float = 0.05
+    """... at most this share of the object's irradiance ..."""
+    glossy_ambient_far: float = 0.1
+    """... or at most this share where the near-lamp fit left the lamps ``far_distance`` object radii away or more."""
+    far_distance: float = 30.0
+    """Object radii beyond which a near-lamp fit's lamps count as far (a fixed room light lets them stay far)."""
 
-    # -- per-pixel stage: Levenberg-Marquardt per pixel (matcap.refine.solve)
+
+@dataclass
+class PixelStageSettings:
+    """The per-pixel stage: Levenberg-Marquardt per pixel with the lights fixed (:mod:`matcap.refine.solve`)."""
+
     coarse_iters: int = 10
     """Iterations at half size (skipped when the maps are 128 px or smaller)."""
     fine_iters: int = 20
     """Iterations at full size."""
-    pixel_tol: float = 1e-4
+    tol: float = 1e-4
     """A pixel is done once two iterations in a row lowered its loss by less than this share of it."""
     lm_observations: int = 262144
     """Pixels x photos per chunk of the solve (its Jacobians' memory grows with both)."""
     chunk: int = 32768
     """Pixels per chunk of the re-render."""
-    cauchy: float = 0.15
-    """Scale of the Cauchy loss on the photo residuals, in the fit's units: shadows, interreflections and
-    highlights the model cannot explain weigh less."""
-    prior_normal: float = 0.5
-    """Weight of |n - n_prior|^2 (n_prior: calibrated Lambertian normals from the photos where solved, else the
-    networks')."""
-    prior_base: float = 0.5
-    """Weight of mean_c (log(b + 0.02) - log(b_net + 0.02))^2."""
-    prior_rough: float = 0.5
-    """Weight of (r - r_net)^2."""
-    prior_metal: float = 0.5
-    """Weight of (m - m_net)^2."""
-    fit_brdf: bool = True
-    """False: roughness and metallic stay the networks' (normals and base colour are still fitted)."""
-    variation_threshold: float = 0.08
-    """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
-    less, and a warning names the share of such pixels)."""
 
+
+@dataclass
+class RefineSettings:
+    """Settings of :func:`refine`, one group per stage (recorded nested in fit.json ``settings``)."""
+
+    model: ModelSettings = field(default_factory=ModelSettings)
+    loss: LossSettings = field(default_factory=LossSettings)
+    priors: PriorSettings = field(default_factory=PriorSettings)
+    lights: LightStageSettings = field(default_factory=LightStageSettings)
+    factorization: FactorizationSettings = field(default_factory=FactorizationSettings)
+    checks: CheckSettings = field(default_factory=CheckSettings)
+    candidates: CandidateSettings = field(default_factory=CandidateSettings)
+    pixels: PixelStageSettings = field(default_factory=PixelStageSettings)
     seed: int = 0
     """Seed of every random choice (pixel subsamples); the fit is repeatable bit for bit for a seed and device."""
     device: str = "cpu"
     """torch device."""
+
+    def replace(self, changes: dict[str, Any]) -> "RefineSettings":
+        """A copy with ``changes`` made: keys "group.field" (``{"lights.iters": 0}``) or "seed" / "device"; a
+        MatcapError names an unknown key."""
+        import dataclasses
+
+        groups: dict[str, dict[str, Any]] = {}
+        top: dict[str, Any] = {}
+        names = {f.name: f for f in dataclasses.fields(self)}
+        for key, value in changes.items():
+            group, _, name = key.partition(".")
+            if group not in names or bool(name) != dataclasses.is_dataclass(getattr(self, group)) or (
+                    name and name not in {f.name for f in dataclasses.fields(getattr(self, group))}):
+                raise MatcapError(f"no fit setting {key!r} (settings: {', '.join(_setting_keys(self))})")
+            if name:
+                groups.setdefault(group, {})[name] = value
+            else:
+                top[group] = value
+        nested = {g: dataclasses.replace(getattr(self, g), **v) for g, v in groups.items()}
+        return dataclasses.replace(self, **nested, **top)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "RefineSettings":
+        """The settings that :func:`dataclasses.asdict` (fit.json ``settings``) recorded as ``d``."""
+        import dataclasses
+
+        kinds = {f.name: f.default_factory for f in dataclasses.fields(cls) if f.default_factory is not dataclasses.MISSING}
+        return cls(**{k: kinds[k](**v) if k in kinds else v for k, v in d.items()})
+
+
+def _setting_keys(s: RefineSettings) -> list[str]:
+    """Every settings key, "group.field" or top-level, in the dataclasses' order."""
+    import dataclasses
+
+    out = []
+    for f in dataclasses.fields(s):
+        v = getattr(s, f.name)
+        out += [f"{f.name}.{g.name}" for g in dataclasses.fields(v)] if dataclasses.is_dataclass(v) else [f.name]
+    return out
 
 
 @dataclass
@@ -287,8 +371,8 @@ def _prepare(images, maps: MaterialMaps, s: RefineSettings) -> _Photos:
     sat_level = np.array([o[mask].max(axis=0) * 0.999 for o in obs], np.float32)
     sat_level = np.where(sat_level > 0, sat_level, np.inf).astype(np.float32)
     variation = light_variation(stack, mask)
-    frac_weak, warning = variation_warning(variation, mask, s.variation_threshold)
-    weight = np.clip(np.nan_to_num(variation) / s.variation_threshold, 0.1, 1.0).astype(np.float32)
+    frac_weak, warning = variation_warning(variation, mask, s.loss.variation_threshold)
+    weight = np.clip(np.nan_to_num(variation) / s.loss.variation_threshold, 0.1, 1.0).astype(np.float32)
     return _Photos(mask, obs, scale, sat_level, _maps_arrays(maps), variation, frac_weak, warning, weight)
 
 
@@ -345,10 +429,10 @@ def _loss(torch, prob: _Problem, px, lights, s: RefineSettings, c: float, brdf: 
     res = torch.where(prob.sat & (res > 0), torch.zeros_like(res), res)  # clipped highlights: only a lower bound
     rho = torch.log1p((res / c) ** 2)
     data = rho.mean(-1).sum(0) * prob.weight
-    prior = s.prior_normal * ((n - prob.n0) ** 2).sum(-1)
-    prior = prior + s.prior_base * ((torch.log(b + 0.02) - torch.log(prob.b0 + 0.02)) ** 2).mean(-1)
+    prior = s.priors.normal * ((n - prob.n0) ** 2).sum(-1)
+    prior = prior + s.priors.base * ((torch.log(b + 0.02) - torch.log(prob.b0 + 0.02)) ** 2).mean(-1)
     if brdf:
-        prior = prior + s.prior_rough * (r - prob.r0) ** 2 + s.prior_metal * (m - prob.m0) ** 2
+        prior = prior + s.priors.rough * (r - prob.r0) ** 2 + s.priors.metal * (m - prob.m0) ** 2
     return data + prior, data
 
 
@@ -371,19 +455,19 @@ def _linear_lights(obs, mask, arrays, s: RefineSettings, rng, lambertian: bool =
     re-fixed by integrability only where the check can still trust it (kept captures need no lights from it)."""
     from matcap.refine.linear import contour_normals, factorize
 
-    sel, c_normal = contour_normals(mask, arrays["normal"], gate=s.contour_gate, nz=s.contour_nz)
+    sel, c_normal = contour_normals(mask, arrays["normal"], gate=s.factorization.contour_gate, nz=s.factorization.contour_nz)
     rows, cols = np.nonzero(mask)
     on_contour = sel[rows, cols]
     inner = np.flatnonzero(~on_contour)
-    if len(inner) > s.linear_pixels:
-        inner = np.sort(rng.choice(inner, size=s.linear_pixels, replace=False))
+    if len(inner) > s.factorization.pixels:
+        inner = np.sort(rng.choice(inner, size=s.factorization.pixels, replace=False))
     idx = np.sort(np.concatenate([inner, np.flatnonzero(on_contour)]))
     r, c = rows[idx], cols[idx]
     lum = _luminance(obs, r, c)
     alb = arrays["base"][r, c] @ np.asarray(LUMA, np.float32)
-    fit = factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.contour_weight)
+    fit = factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.factorization.contour_weight)
     if _distrust(len(obs), fit, None, s, lambertian) is None:
-        fit = _integrable(fit, obs, mask, arrays["normal"], sel, c_normal, s.contour_weight, s.equal_lights)
+        fit = _integrable(fit, obs, mask, arrays["normal"], sel, c_normal, s.factorization.contour_weight, s.factorization.equal_lights)
     return fit
 
 
@@ -423,15 +507,15 @@ def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSett
     ``lambertian`` False: the residual / inliers part is left to the Principled fit's ambient share)."""
     if k_count < 4:
         return f"{k_count} photos: per-pixel normals need 4 or more"
-    if linear.spread < s.trust_spread:
+    if linear.spread < s.checks.spread:
         return (f"the surface is too flat for the photos to tell where the lights were (third singular value "
-                f"{linear.spread:.3f} of the first; trusted from {s.trust_spread:g})")
-    if lambertian and (linear.residual > s.trust_residual or linear.inliers < s.trust_inliers):
+                f"{linear.spread:.3f} of the first; trusted from {s.checks.spread:g})")
+    if lambertian and (linear.residual > s.checks.residual or linear.inliers < s.checks.inliers):
         return (f"distant lights on a diffuse surface do not explain the photos (residual {linear.residual:.0%}, "
-                f"inliers {linear.inliers:.0%}; trusted from {s.trust_residual:.0%} / {s.trust_inliers:.0%})")
-    if solved_fraction is not None and solved_fraction < s.trust_solved:  # implausible lights: normals face away
+                f"inliers {linear.inliers:.0%}; trusted from {s.checks.residual:.0%} / {s.checks.inliers:.0%})")
+    if solved_fraction is not None and solved_fraction < s.checks.solved:  # implausible lights: normals face away
         return (f"under the lights found only {solved_fraction:.0%} of the object's pixels get a normal facing the "
-                f"camera (trusted from {s.trust_solved:.0%})")
+                f"camera (trusted from {s.checks.solved:.0%})")
     return None
 
 
@@ -475,7 +559,7 @@ def _init_lights(torch, prob: _Problem, s: RefineSettings, device, directions=No
         ints.append(e.clamp(min=1e-4))
     vec = torch.stack(dirs)
     log_i = torch.log(torch.stack(ints))
-    sh = torch.zeros(1 if s.ambient != "per-image" else k_count, 9, 3, device=device)
+    sh = torch.zeros(1 if s.model.ambient != "per-image" else k_count, 9, 3, device=device)
     return LightParams("directional", vec, log_i, sh)
 
 
@@ -552,15 +636,15 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
         s = settings or RefineSettings()
         if lights is not None:
             return _refine_known(torch, images, maps, s, progress, lights)
-        point = s.light_model == "point"
+        point = s.model.light == "point"
         first = _refine(torch, images, maps, s, progress, near=point)
         lin = first.report.get("linear") or {}
         if not lin.get("lambertian_only"):
             return first
         # the Lambertian part of the check alone failed: the Principled fit may still explain the photos
-        looks = (["near"] if point or s.near_check else []) + (["glossy"] if s.trust_ambient > 0 and not point else [])
+        looks = (["near"] if point or s.candidates.near else []) + (["glossy"] if s.candidates.glossy and not point else [])
         whys, tried = [], {}
-        limit = s.trust_ambient  # the glossy look's ambient limit: more where the near look left the lamps far
+        limit = s.candidates.glossy_ambient  # the glossy look's ambient limit: more where the near look left the lamps far
         for look in looks:
             second = _refine(torch, images, maps, s, progress, lambertian=False, near=look == "near",
                              gate=look == "near")
@@ -570,10 +654,10 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
                 if "near" not in second:
                     break  # the check itself failed: the same for every look
                 share, radii = second["near"]["ambient_share"], second["near"]["light_distance_radii"]
-                if radii is None or radii >= s.far_distance:
-                    limit = max(s.trust_ambient, s.trust_ambient_far)
+                if radii is None or radii >= s.candidates.far_distance:
+                    limit = max(s.candidates.glossy_ambient, s.candidates.glossy_ambient_far)
                 if share > limit:  # not one lamp per photo even with distances free: no distant look
-                    far = radii is None or radii > s.near_distance  # the verdict named only the distance
+                    far = radii is None or radii > s.candidates.near_distance  # the verdict named only the distance
                     if "glossy" in looks and far:
                         whys.append(f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (distant "
                                     f"lamps tried up to {limit:.0%})")
@@ -627,7 +711,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
 
     # ---- 1. lights: intensities and ambient for the given directions
     t0 = time.perf_counter()
-    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.light_side)
+    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.lights.side)
     centre = _centre(torch, mask).numpy().astype(np.float64)
     directions = np.asarray(known.directions, np.float64)
     inv_distance = None
@@ -649,7 +733,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, photo_report)
         arr_l = dict(arr_l, normal=start_l)
     n_l = int(mask_l.sum())
-    idx = np.sort(rng.choice(n_l, size=min(n_l, s.light_pixels), replace=False))
+    idx = np.sort(rng.choice(n_l, size=min(n_l, s.lights.pixels), replace=False))
     prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
     lights = _init_lights(torch, prob, s, device, directions)
     if inv_distance is not None:
@@ -659,14 +743,14 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     if given is not None:  # relative intensities: start from them at the least-squares overall scale
         given_log = torch.as_tensor(np.log(np.maximum(given, 1e-12)), dtype=torch.float32, device=device)
         lights.log_intensity = given_log + (lights.log_intensity - given_log).mean(0, keepdim=True)
-    lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", s.light_iters, directions_free=False,
+    lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", s.lights.iters, directions_free=False,
                             relative_to=given_log)
     timings["lights_s"] = time.perf_counter() - t0
 
     # ---- 2. per pixel
     t0 = time.perf_counter()
     full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
-                                            s.coarse_iters, s.fine_iters)
+                                            s.pixels.coarse_iters, s.pixels.fine_iters)
     timings["maps_s"] = time.perf_counter() - t0
     bar.close()
 
@@ -680,11 +764,11 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "psnr_db": [round(p, 3) for p in out.psnr],
         "psnr_db_mean": round(float(np.mean(out.psnr)), 3),
         "residual_mean": round(float(np.nanmean(out.residual)), 5),
-        "iterations": {"lights": s.light_iters, **iters_done},
+        "iterations": {"lights": s.lights.iters, **iters_done},
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(out.normal_change_deg, 3),
-        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(ph.weak_fraction, 4),
+        "light_variation": {"threshold": s.loss.variation_threshold, "weak_fraction": round(ph.weak_fraction, 4),
                             "warning": ph.warning},
         "photo_scale": scale,
         "linear": None,
@@ -741,7 +825,7 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
 
     px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
     offset = None
-    light_t = [lights.sh] if s.ambient != "none" else []
+    light_t = [lights.sh] if s.model.ambient != "none" else []
     if relative_to is not None:
         offset = (lights.log_intensity - relative_to).mean(0, keepdim=True).detach().clone()
         light_t.append(offset)
@@ -749,9 +833,9 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
         light_t.append(lights.log_intensity)
     if directions_free:
         light_t += [lights.vec] + ([lights.inv_distance] if lights.kind == "near" else [])
-    groups = [{"params": light_t, "lr": s.lr_light}]
+    groups = [{"params": light_t, "lr": s.lights.lr}]
     if maps_free:
-        groups.append({"params": px.tensors(), "lr": s.lr_pixel})
+        groups.append({"params": px.tensors(), "lr": s.lights.lr_pixel})
     for g in groups:
         for t in g["params"]:
             t.requires_grad_(True)
@@ -764,7 +848,7 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
         opt.zero_grad()
         if offset is not None:
             lights.log_intensity = relative_to + offset
-        per, data = _loss(torch, prob, px, lights, s, s.cauchy, s.fit_brdf)
+        per, data = _loss(torch, prob, px, lights, s, s.loss.cauchy, s.model.fit_brdf)
         loss = per.mean()
         loss.backward()
         opt.step()
@@ -787,17 +871,17 @@ def _near_verdict(found: dict, s: RefineSettings) -> str | None:
     ``light_model`` "point", where only the ambient counts, or where :func:`_needs_loss_ratio` says it cannot
     change the verdict)."""
     radii, share, ratio = found["light_distance_radii"], found["ambient_share"], found["loss_ratio"]
-    point = s.light_model == "point"
-    if not point and (radii is None or radii > s.near_distance):
+    point = s.model.light == "point"
+    if not point and (radii is None or radii > s.candidates.near_distance):
         return (f"the lamps came out {'infinitely far' if radii is None else f'{radii:.1f} object radii'} away "
-                f"(near from {s.near_distance:g})")
-    if share > s.near_ambient:
+                f"(near from {s.candidates.near_distance:g})")
+    if share > s.candidates.near_ambient:
         return (f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (trusted up to "
-                f"{s.near_ambient:.0%}): not one lamp per photo")
-    if not point and ratio is not None and ratio > s.near_loss_ratio and share > s.near_dark:
+                f"{s.candidates.near_ambient:.0%}): not one lamp per photo")
+    if not point and ratio is not None and ratio > s.candidates.near_loss_ratio and share > s.candidates.near_dark:
         return (f"the lamps' distances explain little (the fit's loss {ratio:.0%} of distant lamps', trusted up to "
-                f"{s.near_loss_ratio:.0%}) under a fixed ambient of {share:.0%} (trusted whatever the loss up to "
-                f"{s.near_dark:.0%})")
+                f"{s.candidates.near_loss_ratio:.0%}) under a fixed ambient of {share:.0%} (trusted whatever the loss up to "
+                f"{s.candidates.near_dark:.0%})")
     return None
 
 
@@ -805,7 +889,7 @@ def _needs_loss_ratio(found: dict, s: RefineSettings) -> bool:
     """Whether :func:`_near_verdict` turns on the loss ratio for these findings (it costs ``light_iters`` more
     joint steps): only for lamps near enough, under an ambient neither too strong nor a dark room's."""
     radii, share = found["light_distance_radii"], found["ambient_share"]
-    return radii is not None and radii <= s.near_distance and s.near_dark < share <= s.near_ambient
+    return radii is not None and radii <= s.candidates.near_distance and s.candidates.near_dark < share <= s.candidates.near_ambient
 
 
 def _looks(tried: dict, but: str | None = None) -> dict:
@@ -824,8 +908,8 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     returns only the check's report (a dict) where the rest of it fails; ``near``: near lights (the distant
     ones, then their distances); ``gate``: the near-lamp check (:func:`_near_verdict`) decides after the light
     fit, before the per-pixel one; where it fails, only its report (a dict with ``reason`` and ``near``)."""
-    if s.light_model not in ("directional", "point"):
-        raise MatcapError(f"light model must be 'directional' or 'point', got {s.light_model!r}")
+    if s.model.light not in ("directional", "point"):
+        raise MatcapError(f"light model must be 'directional' or 'point', got {s.model.light!r}")
     t_start = time.perf_counter()
     ph = _prepare(images, maps, s)
     mask, obs, scale, sat_level, arrays, weight = ph.mask, ph.obs, ph.scale, ph.sat_level, ph.arrays, ph.weight
@@ -839,9 +923,9 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
 
     # ---- 1. lights on a downsampled subsample, jointly with those pixels' maps
     t0 = time.perf_counter()
-    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.light_side)
+    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.lights.side)
     n_l = int(mask_l.sum())
-    idx = np.sort(rng.choice(n_l, size=min(n_l, s.light_pixels), replace=False))
+    idx = np.sort(rng.choice(n_l, size=min(n_l, s.lights.pixels), replace=False))
     start = start_l = None
     linear = None
     linear_report = {}  # the factorization (distant lights; near ones start from its solution)
@@ -874,14 +958,14 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
     def joint(lights, iters, label):  # kept maps: the lights are fitted to them as they are
         return _fit_lights(torch, prob, lights, s, bar, label, iters, maps_free=trusted, count=False)
 
-    light_iters = s.light_iters if trusted else s.kept_light_iters
-    compare = near and gate and s.light_model != "point"  # the near-lamp check's loss ratio needs the distant run
-    bar.add_total(light_iters - s.light_iters + (s.light_iters if compare else 0))
+    light_iters = s.lights.iters if trusted else s.lights.kept_iters
+    compare = near and gate and s.model.light != "point"  # the near-lamp check's loss ratio needs the distant run
+    bar.add_total(light_iters - s.lights.iters + (s.lights.iters if compare else 0))
     lights, _ = joint(lights, light_iters, "lights")
     near_found = dist = None
     if near:  # the lamps' distances, from the distant solution
         distant_lights = lights
-        lights, near_data = joint(_to_near(torch, lights, _centre(torch, mask).to(device)), s.light_iters,
+        lights, near_data = joint(_to_near(torch, lights, _centre(torch, mask).to(device)), s.lights.iters,
                                   "point lights")
         dist = _median_distance(lights)
         if gate:
@@ -891,10 +975,10 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
                           "light_distance_radii": None if dist is None else round(dist / _object_radius(mask), 2),
                           "loss_ratio": None, "solved_fraction": (linear_report or {}).get("solved_fraction")}
             if compare and _needs_loss_ratio(near_found, s):  # as many more steps with the lamps kept distant:
-                _, distant_data = joint(distant_lights.detached(), s.light_iters, "distant lights")  # their gain
+                _, distant_data = joint(distant_lights.detached(), s.lights.iters, "distant lights")  # their gain
                 near_found["loss_ratio"] = round(near_data / max(distant_data, 1e-12), 4)
             elif compare:
-                bar.add_total(-s.light_iters)
+                bar.add_total(-s.lights.iters)
             why = _near_verdict(near_found, s)
             if why is not None:
                 bar.close()
@@ -903,7 +987,7 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
 
     # ---- 2. per pixel, lights fixed: half size, then full size
     t0 = time.perf_counter()
-    coarse_iters, fine_iters = (s.coarse_iters, s.fine_iters) if trusted else (0, 0)
+    coarse_iters, fine_iters = (s.pixels.coarse_iters, s.pixels.fine_iters) if trusted else (0, 0)
     full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
                                             coarse_iters, fine_iters)
     timings["maps_s"] = time.perf_counter() - t0
@@ -921,11 +1005,11 @@ def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool =
         "psnr_db": [round(p, 3) for p in psnr],
         "psnr_db_mean": round(float(np.mean(psnr)), 3),
         "residual_mean": round(float(np.nanmean(residual)), 5),
-        "iterations": {"lights": light_iters + (s.light_iters * (2 if ratio_run else 1) if near else 0), **iters_done},
+        "iterations": {"lights": light_iters + (s.lights.iters * (2 if ratio_run else 1) if near else 0), **iters_done},
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(out.normal_change_deg, 3),
-        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(ph.weak_fraction, 4),
+        "light_variation": {"threshold": s.loss.variation_threshold, "weak_fraction": round(ph.weak_fraction, 4),
                             "warning": ph.warning},
         "photo_scale": scale,
         "linear": None if linear_report is None else {**linear_report, **({} if linear is None else {
@@ -955,7 +1039,7 @@ def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: R
 
     device = torch.device(s.device)
     h, w = mask.shape
-    c = s.cauchy
+    c = s.loss.cauchy
     full = _Problem(torch, obs, mask, arrays, weight, sat_level, device, start=start)
     px_full = PixelParams.from_maps(full.ns, full.b0, full.r0, full.m0)
     iters_done = {"coarse": 0, "fine": 0}
@@ -1010,8 +1094,8 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
     with torch.no_grad():
         n_img[full.rows, full.cols] = px.normal().cpu().numpy()
         base[full.rows, full.cols] = px.base().cpu().numpy()
-        rough[full.rows, full.cols] = (px.rough() if s.fit_brdf else full.r0).cpu().numpy()
-        metal[full.rows, full.cols] = (px.metal() if s.fit_brdf else full.m0).cpu().numpy()
+        rough[full.rows, full.cols] = (px.rough() if s.model.fit_brdf else full.r0).cpu().numpy()
+        metal[full.rows, full.cols] = (px.metal() if s.model.fit_brdf else full.m0).cpu().numpy()
     obs_px = full.obs.cpu().numpy()
     err = pred - obs_px
     err = np.where(full.sat.cpu().numpy() & (err > 0), 0.0, err)  # a clipped pixel only bounds the light from below
@@ -1032,8 +1116,8 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
         base, rough, metal = (np.asarray(v, np.float32).copy() for v in (kept.base_color, kept.roughness,
                                                                         kept.metallic))
     refined = MaterialMaps(normal=n_img, mask=mask, base_color=base,
-                           roughness=rough if (maps.roughness is not None or s.fit_brdf) else None,
-                           metallic=metal if (maps.metallic is not None or s.fit_brdf) else None,
+                           roughness=rough if (maps.roughness is not None or s.model.fit_brdf) else None,
+                           metallic=metal if (maps.metallic is not None or s.model.fit_brdf) else None,
                            height=None, meta=dict(maps.meta))
     network = _maps_arrays(maps)["normal"]
     change = np.degrees(np.arccos(np.clip((n_img[mask] * network[mask]).sum(-1), -1, 1)))
@@ -1070,7 +1154,7 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
     lights = lights.detached()
     out = [t.detach().clone() for t in px0.tensors()]
     n = len(prob)
-    step = max(256, s.lm_observations // prob.obs.shape[0])
+    step = max(256, s.pixels.lm_observations // prob.obs.shape[0])
     chunks = [slice(i, min(i + step, n)) for i in range(0, n, step)]
     bar.add_total(iters * len(chunks))
     for sl in chunks:
@@ -1090,10 +1174,10 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
 
     grad, base_logit, rough_logit, metal_logit = start
     n = len(part)
-    brdf = s.fit_brdf  # without it roughness and metallic stay the network's: 5 parameters
+    brdf = s.model.fit_brdf  # without it roughness and metallic stay the network's: 5 parameters
     theta = torch.cat([grad, base_logit] + ([rough_logit[:, None], metal_logit[:, None]] if brdf else []), 1)
-    roots = [math.sqrt(s.prior_normal), math.sqrt(s.prior_base / 3.0), math.sqrt(s.prior_rough),
-             math.sqrt(s.prior_metal)]
+    roots = [math.sqrt(s.priors.normal), math.sqrt(s.priors.base / 3.0), math.sqrt(s.priors.rough),
+             math.sqrt(s.priors.metal)]
 
     def residuals(t, rows):
         sub = part if len(rows) == n else part.take(rows)
@@ -1116,7 +1200,7 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
     shared = ([2, 3, 4], channel.repeat(k), torch.cat([torch.full((3,), -1, device=dev), channel,
                                                       torch.full((2 if brdf else 0,), -1, device=dev)]))
     theta = levenberg_marquardt(residuals, theta, part.weight / 3.0, c, iters, on_step=on_step, shared=shared,
-                                tol=s.pixel_tol)
+                                tol=s.pixels.tol)
     out = [theta[:, 0:2], theta[:, 2:5]]
     out += [theta[:, 5], theta[:, 6]] if brdf else [rough_logit, metal_logit]
     return [t.contiguous() for t in out]
@@ -1125,11 +1209,11 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
 def _predict(torch, prob: _Problem, px, lights, s) -> np.ndarray:
     outs = []
     with torch.no_grad():
-        for i in range(0, len(prob), s.chunk):
-            sl = slice(i, i + s.chunk)
+        for i in range(0, len(prob), s.pixels.chunk):
+            sl = slice(i, i + s.pixels.chunk)
             part = prob.part(sl)
-            r = px.rough()[sl] if s.fit_brdf else part.r0
-            m = px.metal()[sl] if s.fit_brdf else part.m0
+            r = px.rough()[sl] if s.model.fit_brdf else part.r0
+            m = px.metal()[sl] if s.model.fit_brdf else part.m0
             outs.append(_shade(lights, part.pos, px.normal()[sl], px.base()[sl], r, m).cpu().numpy())
     return np.concatenate(outs, axis=1)
 
@@ -1166,7 +1250,7 @@ class _Bar:
         self.cb = progress if callable(progress) else None
         self.show = progress is True
         self.done = 0
-        self.total = s.light_iters * (2 if near else 1) if total is None else total
+        self.total = s.lights.iters * (2 if near else 1) if total is None else total
         self.stage = None
         self.bar = None
         self.loss = float("nan")
@@ -1218,17 +1302,17 @@ def fit_light_only(image: np.ndarray, maps: MaterialMaps, settings: RefineSettin
 
     px = PixelParams.from_maps(full.ns, full.b0, full.r0, full.m0)
     rng = np.random.default_rng(s.seed)
-    idx = np.sort(rng.choice(len(full), size=min(len(full), 4 * s.light_pixels), replace=False))
+    idx = np.sort(rng.choice(len(full), size=min(len(full), 4 * s.lights.pixels), replace=False))
     sub = full.part(idx)
     px_sub = PixelParams(*(t[torch.from_numpy(idx)] for t in px.tensors()))
     lights = _init_lights(torch, sub, s, device)
-    params = [lights.vec, lights.log_intensity] + ([lights.sh] if s.ambient != "none" else [])
+    params = [lights.vec, lights.log_intensity] + ([lights.sh] if s.model.ambient != "none" else [])
     for t in params:
         t.requires_grad_(True)
-    opt = torch.optim.Adam(params, lr=s.lr_light)
-    for _ in range(s.light_iters):
+    opt = torch.optim.Adam(params, lr=s.lights.lr)
+    for _ in range(s.lights.iters):
         opt.zero_grad()
-        per, _ = _loss(torch, sub, px_sub, lights, s, s.cauchy, s.fit_brdf)
+        per, _ = _loss(torch, sub, px_sub, lights, s, s.loss.cauchy, s.model.fit_brdf)
         per.mean().backward()
         opt.step()
     lights = lights.detached()
