@@ -318,27 +318,37 @@ def test_near_lamp_verdict(radii, share, ratio, model, needle):
 ])
 def test_second_looks_run_in_order_and_gate(monkeypatch, radii, near_share, glossy_share, trust, want_looks,
                                             want_check):
-    """Control flow of :func:`refine` where the Lambertian check alone fails: the near-lamp look first (its lamps
-    come out ``radii`` object radii away, beyond the near limit or explaining little: not kept), then the distant
-    (glossy) look only where the near fit's ambient share is within ``trust_ambient`` (``trust_ambient_far`` where
-    the lamps stayed ``far_distance`` away), kept where its own is."""
+    """Control flow of :func:`refine` where the Lambertian check alone fails: the near-lamp candidate first (its
+    lamps come out ``radii`` object radii away, beyond the near limit or explaining little: not kept), then glossy
+    distant lamps only where the near fit's ambient share is within ``candidates.glossy_ambient``
+    (``glossy_ambient_far`` where the lamps stayed ``far_distance`` away), kept where its own is."""
     from matcap.refine import fit as F
 
     ran = []
 
-    def fake(torch, images, maps, s, progress, lambertian=True, near=False, gate=False):
-        if lambertian:
-            rep = {"linear": {"lambertian_only": True, "reason": "not Lambertian"}, "kept_network_maps": True}
-            return F.RefineResult(maps=maps, lights=[], report=rep, residual=None, variation=None)
-        ran.append("near" if near else "glossy")
-        if near:
-            found = {"light_distance_radii": radii, "ambient_share": near_share, "loss_ratio": 0.99}
-            return {"reason": F._near_verdict(found, s), "near": found}
-        rep = {"linear": {"solved_fraction": 0.9}, "ambient_share": glossy_share, "kept_network_maps": False}
+    def check(ph, s, whole):  # the first candidate fails the Lambertian part alone; the later ones pass the rest
+        report = {"solved_fraction": 0.9, "trusted": not whole,
+                  **({"reason": "not Lambertian", "lambertian_only": True} if whole else {})}
+        return F._Check(whole, None, None, None, report, "not Lambertian" if whole else None, whole)
+
+    def light_stage(torch, ph, chk, look, s, progress):
+        if not chk.whole:
+            ran.append(look)
+        found = {"light_distance_radii": radii, "ambient_share": near_share, "loss_ratio": 0.99,
+                 "solved_fraction": 0.9} if look == "near" else None
+        return F._LightStage(object(), chk.reason is None, {}, None, look == "near", None, found, 0,
+                             F._Bar(None, s, total=0), 0.0)
+
+    def finish(torch, ph, maps, chk, stage, s, t_start):
+        rep = {"linear": dict(chk.report), "ambient_share": glossy_share, "kept_network_maps": not stage.trusted}
         return F.RefineResult(maps=maps, lights=[], report=rep, residual=None, variation=None)
 
-    monkeypatch.setattr(F, "_refine", fake)
-    res = F.refine([], None, RefineSettings().replace({"candidates.glossy": trust > 0, "candidates.glossy_ambient": trust}))
+    monkeypatch.setattr(F, "_prepare", lambda images, maps, s: None)
+    monkeypatch.setattr(F, "_check", check)
+    monkeypatch.setattr(F, "_light_stage", light_stage)
+    monkeypatch.setattr(F, "_finish", finish)
+    res = F.refine([], None, RefineSettings().replace({"candidates.glossy": trust > 0,
+                                                         "candidates.glossy_ambient": trust}))
     assert ran == want_looks
     lin = res.report["linear"]
     assert lin.get("check") == want_check

@@ -9,13 +9,17 @@ Cauchy loss (shadows, interreflections and highlights the model cannot explain a
 light-variation weight (:func:`light_variation`), and the prior pulls normals, base colour, roughness and metallic
 toward the network's values (this is what stops the drift into the generalized bas-relief family).
 
-Coarse to fine:
-  1. lights: the Lambertian factorization (:mod:`matcap.refine.linear`; or least squares from the network
-     normals), then a joint robust fit of the lights and of the maps of a random subsample of pixels of a
-     downsampled copy of the photos; near lamps start there as distant ones and then fit their distances;
-  2. maps: with the lights fixed every pixel is an independent problem: Levenberg-Marquardt on all pixels at once
-     (in chunks; :mod:`matcap.refine.solve`), on a half-size copy first, whose corrections are upsampled as the
-     start of the full-size solve.
+The fit's stages (the photos' decoding and the networks run before, in :mod:`matcap.capture`):
+  1. photos: :func:`_prepare` (checks, fit units, clipping levels, light variation);
+  2. lights, on a downsampled copy of the photos: known (:func:`_refine_known`: a light file or a mirror ball; the
+     directions held) or estimated (:func:`_refine_estimated`: the Lambertian factorization of
+     :mod:`matcap.refine.linear` and its check, then the candidate light models of :func:`candidate_models` in
+     order, judged by one rule, :func:`_judge`); each a joint robust fit of the lights and of the maps of a pixel
+     subsample (:func:`_fit_lights`);
+  3. per pixel (:func:`_solve_maps`): with the lights fixed every pixel is an independent problem:
+     Levenberg-Marquardt on all pixels at once (in chunks; :mod:`matcap.refine.solve`), on a half-size copy first,
+     whose corrections are upsampled as the start of the full-size solve;
+  4. outputs (:func:`_outputs`): the maps, re-renders, residual, fit.json.
 Photos are scaled so that their mean over the mask is 0.5 (the fit's units); lights are reported in photo units.
 """
 from __future__ import annotations
@@ -229,7 +233,9 @@ def _setting_keys(s: RefineSettings) -> list[str]:
 class RefineResult:
     """maps: refined :class:`MaterialMaps`; lights: lights.json ``images`` entries (photo units); report: fit.json;
     residual (H, W) float32 RMS re-render error / the photos' mean (NaN off-mask); variation (H, W) float32
-    light variation (NaN off-mask); warning: one line or None."""
+    light variation (NaN off-mask); warning: one line or None; prediction (K, H, W, 3) re-renders in photo units;
+    candidates: the estimated lights' candidate light models judged, in order (:class:`Candidate`; empty with
+    known lights)."""
 
     maps: MaterialMaps
     lights: list[dict[str, Any]]
@@ -237,7 +243,8 @@ class RefineResult:
     residual: np.ndarray
     variation: np.ndarray
     warning: str | None = None
-    prediction: np.ndarray | None = field(default=None, repr=False)  # (K, H, W, 3) re-renders, photo units
+    prediction: np.ndarray | None = field(default=None, repr=False)
+    candidates: list["Candidate"] = field(default_factory=list, repr=False)
 
 
 # ----------------------------------------------------------------------------------------------- checks
@@ -504,7 +511,7 @@ def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSett
               lambertian: bool = True) -> str | None:
     """Why the factorization's lights may not move the maps (one line), or None: the check of docs/refine.md
     (``solved_fraction`` None: the photos' normals are not solved yet, that part of the check waits;
-    ``lambertian`` False: the residual / inliers part is left to the Principled fit's ambient share)."""
+    ``lambertian`` False: the residual / inliers part is left out, for the candidates judged after it)."""
     if k_count < 4:
         return f"{k_count} photos: per-pixel normals need 4 or more"
     if linear.spread < s.checks.spread:
@@ -618,15 +625,9 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     """Fit lights and maps to the photos.
 
     images: K (H, W, 3) float32 linear RGB photos (at the maps' size); maps: the networks' :class:`MaterialMaps`
-    (missing BRDF maps start from ``with_defaults``). Deterministic for ``settings.seed`` on one device.
-
-    Where the photos fail only the Lambertian part of the check (residual / inliers: a near lamp's falloff, a glossy
-    object, or light that is not one lamp per photo), the fit runs again without it, with lights whose distance
-    it finds (``near_check``), and is kept where :func:`_near_verdict` finds the lamps near and explaining the
-    photos (decided after the light fit); then, where that fit's fixed ambient gave at most ``trust_ambient`` of the
-    object's irradiance (a dark room, lamps far), with distant lights, kept if its own ambient share is as small
-    (:func:`ambient_share`). Otherwise the first
-    pass's kept maps are returned, with every reason.
+    (missing BRDF maps start from ``with_defaults``); lights: :class:`matcap.lightfiles.KnownLights` of the photos
+    (held: :func:`_refine_known`) or None (estimated: :func:`_refine_estimated`). Deterministic for
+    ``settings.seed`` on one device. ``progress``: see :class:`_Bar`.
     """
     import torch
 
@@ -636,53 +637,7 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
         s = settings or RefineSettings()
         if lights is not None:
             return _refine_known(torch, images, maps, s, progress, lights)
-        point = s.model.light == "point"
-        first = _refine(torch, images, maps, s, progress, near=point)
-        lin = first.report.get("linear") or {}
-        if not lin.get("lambertian_only"):
-            return first
-        # the Lambertian part of the check alone failed: the Principled fit may still explain the photos
-        looks = (["near"] if point or s.candidates.near else []) + (["glossy"] if s.candidates.glossy and not point else [])
-        whys, tried = [], {}
-        limit = s.candidates.glossy_ambient  # the glossy look's ambient limit: more where the near look left the lamps far
-        for look in looks:
-            second = _refine(torch, images, maps, s, progress, lambertian=False, near=look == "near",
-                             gate=look == "near")
-            if isinstance(second, dict):  # the check, or the near look's verdict, failed before the per-pixel fit
-                whys.append(second.get("reason"))
-                tried[look] = second.get("near") or {"solved_fraction": second.get("solved_fraction")}
-                if "near" not in second:
-                    break  # the check itself failed: the same for every look
-                share, radii = second["near"]["ambient_share"], second["near"]["light_distance_radii"]
-                if radii is None or radii >= s.candidates.far_distance:
-                    limit = max(s.candidates.glossy_ambient, s.candidates.glossy_ambient_far)
-                if share > limit:  # not one lamp per photo even with distances free: no distant look
-                    far = radii is None or radii > s.candidates.near_distance  # the verdict named only the distance
-                    if "glossy" in looks and far:
-                        whys.append(f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (distant "
-                                    f"lamps tried up to {limit:.0%})")
-                    break
-                continue  # the lamps are far, in a dark room: the glossy look may still apply
-            rep = second.report
-            lin2, share = rep["linear"], rep["ambient_share"]
-            if look == "near":
-                ok, why = True, None
-            else:
-                ok = share <= limit
-                why = (f"the Principled fit needed a fixed ambient of {share:.0%} of the light (trusted up to "
-                       f"{limit:.0%}): not one light per photo")
-                tried[look] = {"ambient_share": share, "solved_fraction": lin2.get("solved_fraction")}
-            if ok:
-                rep["linear"] = {**lin2, "check": "near lamps" if look == "near" else "principled",
-                                 "reason_lambertian": lin["reason"], **_looks(tried, but=look),
-                                 **({"reason_near": whys[-1]} if whys else {})}
-                return second
-            whys.append(why)
-        if whys:
-            extra = [w for w in dict.fromkeys(whys) if w and w not in lin["reason"]]  # each reason once
-            first.report["linear"] = {**lin, **({"reason": f"{lin['reason']}; without that part of the check: "
-                                                           + "; ".join(extra)} if extra else {}), **_looks(tried)}
-        return first
+        return _refine_estimated(torch, images, maps, s, progress)
     finally:
         torch.use_deterministic_algorithms(was[0], warn_only=was[1])
 
@@ -865,36 +820,241 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
     return lights.detached(), data_mean
 
 
+# ----------------------------------------------------------------------------------------------- estimated lights
+
+
+@dataclass
+class Candidate:
+    """One candidate light model of the estimated-lights path and what its fit found (:func:`_refine_estimated`).
+
+    look: "distant" (distant lights) or "point" (a lamp per photo whose distance the fit finds), the first
+    candidate, under the whole check; "near" (lamps whose distances the fit finds, starting from the networks'
+    normals) or "glossy" (distant lamps under the Principled model alone), tried where the first failed only the
+    check's residual / inliers part. lights: the fitted :class:`matcap.refine.model.LightParams` (fit units), None
+    where the rule refused the candidate before its light fit. solved_fraction: share of the object's pixels that
+    get a Lambertian normal facing the camera under the factorization's lights (None: not measured).
+    ambient_share: share of the object's irradiance that the fixed ambient gives (near: measured on the light fit's
+    pixels after the light fit; glossy: on every pixel after the per-pixel fit; None: not measured).
+    distance_radii: median lamp distance in object radii (None: infinitely far, or not near lamps). loss_ratio: the
+    near-lamp light fit's data term over that of distant lamps after as many steps (None: not measured).
+    reason: why the rule refused the candidate (one line), None where accepted. final: that refusal holds for every
+    later candidate (the photos themselves fail the check)."""
+
+    look: str
+    lights: Any = None
+    solved_fraction: float | None = None
+    ambient_share: float | None = None
+    distance_radii: float | None = None
+    loss_ratio: float | None = None
+    reason: str | None = None
+    final: bool = False
+
+    def record(self) -> dict[str, Any]:
+        """fit.json ``linear`` ``near_fit`` / ``principled_fit`` entry: what a refused later candidate found."""
+        if self.lights is None:  # refused by the check before its fit
+            return {"solved_fraction": self.solved_fraction}
+        if self.look == "near":
+            return {"ambient_share": self.ambient_share, "light_distance_radii": self.distance_radii,
+                    "loss_ratio": self.loss_ratio, "solved_fraction": self.solved_fraction}
+        return {"ambient_share": self.ambient_share, "solved_fraction": self.solved_fraction}
+
+
+RECORD_KEYS = {"near": "near_fit", "glossy": "principled_fit"}  # fit.json ``linear`` key of a later candidate
+CHECK_NAMES = {"near": "near lamps", "glossy": "principled"}  # fit.json ``linear`` ``check``: the one accepted
+
+
+def candidate_models(s: RefineSettings) -> list[str]:
+    """The estimated path's candidate light models, in the order they are tried (:class:`Candidate` ``look``):
+    distant lights, then near lamps (``candidates.near``), then glossy distant lamps (``candidates.glossy``); with
+    light model "point": point lamps, then near lamps judged on their ambient alone."""
+    if s.model.light == "point":
+        return ["point", "near"]
+    return ["distant"] + (["near"] if s.candidates.near else []) + (["glossy"] if s.candidates.glossy else [])
+
+
+@dataclass
+class _Check:
+    """The factorization and its check (:func:`_check`), shared by the candidates judged on the same part of it.
+
+    whole: all of the check (the first candidate) or all but its residual / inliers part (the later ones); idx:
+    the light fit's pixel subsample (indices into the light copy's object pixels); linear:
+    :class:`matcap.refine.linear.LinearFit` or None (fewer than 4 photos); start (H, W, 3): the photos' calibrated
+    normals under its lights, or None where the check failed before they were solved; report: fit.json ``linear``;
+    reason: why the check refuses the photos, or None; lambertian_only: only the residual / inliers part failed."""
+
+    whole: bool
+    idx: np.ndarray
+    linear: Any
+    start: np.ndarray | None
+    report: dict[str, Any]
+    reason: str | None
+    lambertian_only: bool
+
+    def s_lum(self) -> np.ndarray:
+        """(K, 3) the factorization's lights: direction times luminance irradiance."""
+        return self.linear.directions * self.linear.irradiance[:, None]
+
+
+def _check(ph: _Photos, s: RefineSettings, whole: bool) -> _Check:
+    """The light stage's start with estimated lights: the light fit's pixel subsample, the Lambertian factorization
+    of the light copy (:func:`_linear_lights`), its check (:func:`_distrust`; ``whole``: with its residual /
+    inliers part) and, where its lights pass the check's first parts, the photos' calibrated normals under them."""
+    rng = np.random.default_rng(s.seed)
+    k_count = ph.obs.shape[0]
+    _, (obs_l, mask_l, arr_l, _) = ph.light_copy(s.lights.side)
+    n_l = int(mask_l.sum())
+    idx = np.sort(rng.choice(n_l, size=min(n_l, s.lights.pixels), replace=False))
+    linear = _linear_lights(obs_l, mask_l, arr_l, s, rng, whole) if k_count >= 4 else None
+    start, report = None, {}
+    if _distrust(k_count, linear, None, s, whole) is None:  # start (and prior) normals from the photos' lights
+        start, report = _photo_normals(ph.obs, ph.mask, ph.arrays["normal"],
+                                       linear.directions * linear.irradiance[:, None])
+    reason = _distrust(k_count, linear, report.get("solved_fraction"), s, whole)
+    lambertian_only = reason is not None and whole and _distrust(k_count, linear, None, s, False) is None
+    report = {**report, "trusted": reason is None, **({"reason": reason} if reason else {}),
+              **({"lambertian_only": True} if lambertian_only else {})}
+    if linear is not None:
+        report.update(contour_pixels=linear.contour_pixels, residual=round(linear.residual, 4),
+                      inliers=round(linear.inliers, 4), spread=round(linear.spread, 5))
+    return _Check(whole, idx, linear, start, report, reason, lambertian_only)
+
+
+@dataclass
+class _LightStage:
+    """The light stage's result for one candidate (:func:`_light_stage`).
+
+    lights: :class:`matcap.refine.model.LightParams` in fit units; trusted: the maps may move (else the lights were
+    fitted to the networks' maps, which are kept); arrays: the per-pixel stage's priors ("normal" the start normals
+    where trusted); start (H, W, 3) start normals or None (the priors'); near: lamps whose distances were fitted;
+    distance: their median distance in half-widths of the frame (None: infinitely far); found: the near-lamp
+    findings for fit.json ``near_lamps`` (ambient_share, light_distance_radii, loss_ratio, solved_fraction) or
+    None; iters: light-fit steps run; bar: the candidate's progress; seconds: the stage's time."""
+
+    lights: Any
+    trusted: bool
+    arrays: dict[str, np.ndarray]
+    start: np.ndarray | None
+    near: bool
+    distance: float | None
+    found: dict[str, Any] | None
+    iters: int
+    bar: Any
+    seconds: float
+
+
+def _light_stage(torch, ph: _Photos, chk: _Check, look: str, s: RefineSettings, progress) -> _LightStage:
+    """The lights of candidate ``look`` on the light copy (:func:`_fit_lights`): from the factorization's lights
+    where the check ``chk`` passed (the subsample's maps free), else from the networks' maps (kept, fixed). Lamps
+    ("point", "near") then come in from infinitely far; for "near" the ambient share, the lamps' distance in object
+    radii and, where the rule needs it (:func:`_needs_loss_ratio`), the loss ratio against distant lamps fitted as
+    long again are measured."""
+    t0 = time.perf_counter()
+    device = torch.device(s.device)
+    torch.manual_seed(s.seed)
+    near, gate = look in ("point", "near"), look == "near"
+    bar = _Bar(progress, s, near)
+    h, w = ph.mask.shape
+    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.lights.side)
+    trusted = chk.reason is None
+    arrays, start, start_l = ph.arrays, None, None
+    if trusted and look != "near":  # the distant lamps' photo normals carry near lamps' falloff: near lamps start
+        start = chk.start  # from the networks' normals (a near-lit dome 1.50 / 1.63 degrees, against 2.29 / 2.41)
+        arrays = dict(arrays, normal=start)
+        if hw_l == (h, w):
+            arr_l, start_l = arrays, start
+        else:
+            start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], chk.s_lum(), chk.report)
+            arr_l = dict(arr_l, normal=start_l)
+    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, ph.sat_level, device, chk.idx, start_l)
+    lights = _init_lights(torch, prob, s, device, chk.linear.directions if trusted else None)
+
+    def joint(lights, iters, label):  # kept maps: the lights are fitted to them as they are
+        return _fit_lights(torch, prob, lights, s, bar, label, iters, maps_free=trusted, count=False)
+
+    iters = s.lights.iters if trusted else s.lights.kept_iters
+    compare = gate and s.model.light != "point"  # the loss ratio needs distant lamps fitted as long
+    bar.add_total(iters - s.lights.iters + (s.lights.iters if compare else 0))
+    lights, _ = joint(lights, iters, "lights")
+    found = dist = None
+    if near:  # the lamps' distances, from the distant solution
+        distant_lights = lights
+        lights, near_data = joint(_to_near(torch, lights, _centre(torch, ph.mask).to(device)), s.lights.iters,
+                                  "point lights")
+        iters += s.lights.iters
+        dist = _median_distance(lights)
+        if gate:
+            with torch.no_grad():
+                share = ambient_share(torch, lights, prob.pos, prob.ns)
+            found = {"ambient_share": round(share, 4),
+                     "light_distance_radii": None if dist is None else round(dist / _object_radius(ph.mask), 2),
+                     "loss_ratio": None, "solved_fraction": chk.report.get("solved_fraction")}
+            if compare and _needs_loss_ratio(found, s):
+                _, distant_data = joint(distant_lights.detached(), s.lights.iters, "distant lights")
+                found["loss_ratio"] = round(near_data / max(distant_data, 1e-12), 4)
+                iters += s.lights.iters
+            elif compare:
+                bar.add_total(-s.lights.iters)
+    return _LightStage(lights, trusted, arrays, start, near, dist, found, iters, bar, time.perf_counter() - t0)
+
+
+def _judge(c: Candidate, chk: _Check, earlier: list[Candidate], s: RefineSettings) -> tuple[str | None, bool]:
+    """The rule of the estimated-lights path: (why candidate ``c`` may not move the maps, None where it may; whether
+    that refusal holds for every later candidate too). A finding not measured yet (None) refuses nothing:
+    :func:`_refine_estimated` applies the rule before a candidate's fit, after its light fit and after its per-pixel
+    fit, and stops it at the first refusal.
+
+    1. The factorization's check ``chk`` (:func:`_distrust`): the first candidate must pass all of it; the later
+       ones, tried only where the first failed on residual / inliers alone, all but that part, and where they fail
+       it, every later one does.
+    2. Near lamps: :func:`_near_verdict` (their distance, the ambient share, the loss ratio).
+    3. Glossy distant lamps: the fixed ambient of their own fit and of the near-lamp fit before them at most
+       ``candidates.glossy_ambient`` of the object's irradiance, ``candidates.glossy_ambient_far`` where the
+       near-lamp fit left the lamps ``far_distance`` object radii away or more (or infinitely far)."""
+    if chk.reason is not None:
+        return chk.reason, not chk.lambertian_only
+    if c.look == "near" and c.ambient_share is not None:
+        return _near_verdict({"light_distance_radii": c.distance_radii, "ambient_share": c.ambient_share,
+                              "loss_ratio": c.loss_ratio}, s), False
+    if c.look == "glossy":
+        cs = s.candidates
+        near = next((e for e in earlier if e.look == "near" and e.ambient_share is not None), None)
+        far = near is not None and (near.distance_radii is None or near.distance_radii >= cs.far_distance)
+        limit = max(cs.glossy_ambient, cs.glossy_ambient_far) if far else cs.glossy_ambient
+        if near is not None and near.ambient_share > limit:
+            return (f"the near-lamp fit needed a fixed ambient of {near.ambient_share:.0%} of the light (distant "
+                    f"lamps tried up to {limit:.0%})"), False
+        if c.ambient_share is not None and c.ambient_share > limit:
+            return (f"the Principled fit needed a fixed ambient of {c.ambient_share:.0%} of the light (trusted up "
+                    f"to {limit:.0%}): not one light per photo"), False
+    return None, False
+
+
 def _near_verdict(found: dict, s: RefineSettings) -> str | None:
-    """Why a near-lamp fit's lamps may not move the maps (one line), or None (:class:`RefineSettings` ``near_*``).
+    """Why a near-lamp fit's lamps may not move the maps (one line), or None (:class:`CandidateSettings` ``near_*``).
     ``found``: light_distance_radii (None: infinitely far), ambient_share, loss_ratio (None: not measured, with
-    ``light_model`` "point", where only the ambient counts, or where :func:`_needs_loss_ratio` says it cannot
+    light model "point", where only the ambient counts, or where :func:`_needs_loss_ratio` says it cannot
     change the verdict)."""
     radii, share, ratio = found["light_distance_radii"], found["ambient_share"], found["loss_ratio"]
+    cs = s.candidates
     point = s.model.light == "point"
-    if not point and (radii is None or radii > s.candidates.near_distance):
+    if not point and (radii is None or radii > cs.near_distance):
         return (f"the lamps came out {'infinitely far' if radii is None else f'{radii:.1f} object radii'} away "
-                f"(near from {s.candidates.near_distance:g})")
-    if share > s.candidates.near_ambient:
+                f"(near from {cs.near_distance:g})")
+    if share > cs.near_ambient:
         return (f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (trusted up to "
-                f"{s.candidates.near_ambient:.0%}): not one lamp per photo")
-    if not point and ratio is not None and ratio > s.candidates.near_loss_ratio and share > s.candidates.near_dark:
+                f"{cs.near_ambient:.0%}): not one lamp per photo")
+    if not point and ratio is not None and ratio > cs.near_loss_ratio and share > cs.near_dark:
         return (f"the lamps' distances explain little (the fit's loss {ratio:.0%} of distant lamps', trusted up to "
-                f"{s.candidates.near_loss_ratio:.0%}) under a fixed ambient of {share:.0%} (trusted whatever the loss up to "
-                f"{s.candidates.near_dark:.0%})")
+                f"{cs.near_loss_ratio:.0%}) under a fixed ambient of {share:.0%} (trusted whatever the loss up to "
+                f"{cs.near_dark:.0%})")
     return None
 
 
 def _needs_loss_ratio(found: dict, s: RefineSettings) -> bool:
-    """Whether :func:`_near_verdict` turns on the loss ratio for these findings (it costs ``light_iters`` more
+    """Whether :func:`_near_verdict` turns on the loss ratio for these findings (it costs ``lights.iters`` more
     joint steps): only for lamps near enough, under an ambient neither too strong nor a dark room's."""
-    radii, share = found["light_distance_radii"], found["ambient_share"]
-    return radii is not None and radii <= s.candidates.near_distance and s.candidates.near_dark < share <= s.candidates.near_ambient
-
-
-def _looks(tried: dict, but: str | None = None) -> dict:
-    """fit.json ``linear`` keys of the second looks that were tried (``near_fit``, ``principled_fit``)."""
-    return {("near_fit" if k == "near" else "principled_fit"): v for k, v in tried.items() if k != but}
+    radii, share, cs = found["light_distance_radii"], found["ambient_share"], s.candidates
+    return radii is not None and radii <= cs.near_distance and cs.near_dark < share <= cs.near_ambient
 
 
 def _object_radius(mask: np.ndarray) -> float:
@@ -902,127 +1062,118 @@ def _object_radius(mask: np.ndarray) -> float:
     return max(math.sqrt(float(np.count_nonzero(mask)) / math.pi) * 2.0 / mask.shape[1], 1e-6)
 
 
-def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool = True, near: bool = False,
-            gate: bool = False) -> RefineResult | dict:
-    """One fit; ``lambertian`` False leaves the residual / inliers part of the check out (:func:`refine`) and
-    returns only the check's report (a dict) where the rest of it fails; ``near``: near lights (the distant
-    ones, then their distances); ``gate``: the near-lamp check (:func:`_near_verdict`) decides after the light
-    fit, before the per-pixel one; where it fails, only its report (a dict with ``reason`` and ``near``)."""
+def _refine_estimated(torch, images, maps: MaterialMaps, s: RefineSettings, progress) -> RefineResult:
+    """The fit with estimated lights. Stages: (1) the photos (:func:`_prepare`); (2) lights: the candidate light
+    models of :func:`candidate_models` in order, each fitted (:func:`_check`, :func:`_light_stage`) as far as the
+    rule :func:`_judge` lets it; (3) the first accepted candidate's per-pixel solve and (4) outputs
+    (:func:`_finish`; a glossy candidate is judged on its ambient share after them). Where none is accepted, the
+    networks' maps are kept, the first candidate's lights fitted to them, with every reason once.
+
+    The result's ``candidates``: every candidate judged, in order."""
     if s.model.light not in ("directional", "point"):
         raise MatcapError(f"light model must be 'directional' or 'point', got {s.model.light!r}")
     t_start = time.perf_counter()
     ph = _prepare(images, maps, s)
-    mask, obs, scale, sat_level, arrays, weight = ph.mask, ph.obs, ph.scale, ph.sat_level, ph.arrays, ph.weight
-    device = torch.device(s.device)
-    torch.manual_seed(s.seed)
-    rng = np.random.default_rng(s.seed)
-    k_count, h, w = obs.shape[:3]
+    checks: dict[bool, _Check] = {}
+    tried: list[Candidate] = []
+    for look in candidate_models(s):
+        whole = not tried
+        chk = checks[whole] = checks.get(whole) or _check(ph, s, whole)
+        c = Candidate(look, solved_fraction=chk.report.get("solved_fraction"))
+        tried.append(c)
+        c.reason, c.final = _judge(c, chk, tried[:-1], s)
+        if c.reason is None:
+            stage = _light_stage(torch, ph, chk, look, s, progress)
+            c.lights = stage.lights
+            if stage.found is not None:
+                c.ambient_share, c.distance_radii, c.loss_ratio = (
+                    stage.found[k] for k in ("ambient_share", "light_distance_radii", "loss_ratio"))
+            c.reason, c.final = _judge(c, chk, tried[:-1], s)
+            if c.reason is not None:
+                stage.bar.close()
+            else:
+                result = _finish(torch, ph, maps, chk, stage, s, t_start)
+                if look == "glossy":
+                    c.ambient_share = result.report["ambient_share"]
+                    c.reason, c.final = _judge(c, chk, tried[:-1], s)
+                if c.reason is None:
+                    return _accepted(result, tried)
+        if c.final:
+            break
+    kept = _finish(torch, ph, maps, checks[True], _light_stage(torch, ph, checks[True], tried[0].look, s, progress),
+                   s, t_start)
+    return _kept(kept, tried)
 
-    bar = _Bar(progress, s, near)
-    timings: dict[str, float] = {}
 
-    # ---- 1. lights on a downsampled subsample, jointly with those pixels' maps
+def _accepted(result: RefineResult, tried: list[Candidate]) -> RefineResult:
+    """``result``, the fit of the accepted candidate ``tried[-1]``, with the candidates before it in fit.json
+    ``linear`` (``check``, ``reason_lambertian``, what the refused later ones found, ``reason_near``)."""
+    c, first, refused = tried[-1], tried[0], tried[1:-1]
+    if c is not first:
+        lin = result.report["linear"]
+        near = [e.reason for e in refused if e.look == "near"]
+        result.report["linear"] = {**lin, "check": CHECK_NAMES[c.look], "reason_lambertian": first.reason,
+                                   **_records(refused), **({"reason_near": near[-1]} if near else {})}
+    result.candidates = tried
+    return result
+
+
+def _kept(result: RefineResult, tried: list[Candidate]) -> RefineResult:
+    """``result``, the networks' maps kept under the first candidate's lights, with every refused later
+    candidate's reason once in fit.json ``linear`` ``reason`` and what they found."""
+    later = tried[1:]
+    if later:
+        lin = result.report["linear"]
+        extra = [r for r in dict.fromkeys(e.reason for e in later) if r and r not in lin["reason"]]
+        result.report["linear"] = {**lin, **({"reason": f"{lin['reason']}; without that part of the check: "
+                                                         + "; ".join(extra)} if extra else {}), **_records(later)}
+    result.candidates = tried
+    return result
+
+
+def _records(later: list[Candidate]) -> dict[str, Any]:
+    """fit.json ``linear`` entries of refused later candidates that had findings of their own: a fit, or the
+    check's solved fraction (not those refused on an earlier candidate's findings before any fit)."""
+    return {RECORD_KEYS[e.look]: e.record() for e in later if e.lights is not None or e.final}
+
+
+def _finish(torch, ph: _Photos, maps: MaterialMaps, chk: _Check, stage: _LightStage, s: RefineSettings,
+            t_start: float) -> RefineResult:
+    """The per-pixel stage (:func:`_solve_maps`; none where the maps are kept) and the outputs (:func:`_outputs`)
+    under the lights of ``stage``, and fit.json; ``t_start``: the fit's start (``timings`` ``total_s``)."""
+    mask, scale = ph.mask, ph.scale
+    timings: dict[str, float] = {"lights_s": stage.seconds}
     t0 = time.perf_counter()
-    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.lights.side)
-    n_l = int(mask_l.sum())
-    idx = np.sort(rng.choice(n_l, size=min(n_l, s.lights.pixels), replace=False))
-    start = start_l = None
-    linear = None
-    linear_report = {}  # the factorization (distant lights; near ones start from its solution)
-    if k_count >= 4:
-        linear = _linear_lights(obs_l, mask_l, arr_l, s, rng, lambertian)
-    if _distrust(k_count, linear, None, s, lambertian) is None:  # start (and prior) normals from the photos' lights
-        s_lum = linear.directions * linear.irradiance[:, None]
-        start, linear_report = _photo_normals(obs, mask, arrays["normal"], s_lum)
-    reason = _distrust(k_count, linear, linear_report.get("solved_fraction"), s, lambertian)
-    linear_report = {**linear_report, "trusted": reason is None, **({"reason": reason} if reason else {})}
-    if reason is not None and lambertian and _distrust(k_count, linear, None, s, False) is None:
-        linear_report["lambertian_only"] = True  # only residual / inliers failed: see trust_ambient
-    trusted = linear_report["trusted"]
-    if not lambertian and not trusted:  # the Principled fit was not even started: refine() keeps the first pass
-        return linear_report
-    if not trusted:
-        start = None
-    if near and not lambertian:  # the distant lamps' photo normals carry the near lamps' falloff: the network's
-        start = None  # are the start and the prior (a near-lit dome 1.50 / 1.63 degrees, against 2.29 / 2.41)
-    elif linear is not None and trusted:
-        arrays = dict(arrays, normal=start)
-        if hw_l == (h, w):
-            arr_l, start_l = arrays, start
-        else:
-            start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, linear_report)
-            arr_l = dict(arr_l, normal=start_l)
-    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
-    lights = _init_lights(torch, prob, s, device, linear.directions if linear is not None and trusted else None)
-
-    def joint(lights, iters, label):  # kept maps: the lights are fitted to them as they are
-        return _fit_lights(torch, prob, lights, s, bar, label, iters, maps_free=trusted, count=False)
-
-    light_iters = s.lights.iters if trusted else s.lights.kept_iters
-    compare = near and gate and s.model.light != "point"  # the near-lamp check's loss ratio needs the distant run
-    bar.add_total(light_iters - s.lights.iters + (s.lights.iters if compare else 0))
-    lights, _ = joint(lights, light_iters, "lights")
-    near_found = dist = None
-    if near:  # the lamps' distances, from the distant solution
-        distant_lights = lights
-        lights, near_data = joint(_to_near(torch, lights, _centre(torch, mask).to(device)), s.lights.iters,
-                                  "point lights")
-        dist = _median_distance(lights)
-        if gate:
-            with torch.no_grad():
-                share_l = ambient_share(torch, lights, prob.pos, prob.ns)
-            near_found = {"ambient_share": round(share_l, 4),
-                          "light_distance_radii": None if dist is None else round(dist / _object_radius(mask), 2),
-                          "loss_ratio": None, "solved_fraction": (linear_report or {}).get("solved_fraction")}
-            if compare and _needs_loss_ratio(near_found, s):  # as many more steps with the lamps kept distant:
-                _, distant_data = joint(distant_lights.detached(), s.lights.iters, "distant lights")  # their gain
-                near_found["loss_ratio"] = round(near_data / max(distant_data, 1e-12), 4)
-            elif compare:
-                bar.add_total(-s.lights.iters)
-            why = _near_verdict(near_found, s)
-            if why is not None:
-                bar.close()
-                return {**(linear_report or {}), "reason": why, "near": near_found}
-    timings["lights_s"] = time.perf_counter() - t0
-
-    # ---- 2. per pixel, lights fixed: half size, then full size
-    t0 = time.perf_counter()
-    coarse_iters, fine_iters = (s.pixels.coarse_iters, s.pixels.fine_iters) if trusted else (0, 0)
-    full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
-                                            coarse_iters, fine_iters)
+    coarse_iters, fine_iters = (s.pixels.coarse_iters, s.pixels.fine_iters) if stage.trusted else (0, 0)
+    full, px_full, iters_done = _solve_maps(torch, ph.obs, mask, stage.arrays, ph.weight, ph.sat_level,
+                                            stage.start, stage.lights, s, stage.bar, coarse_iters, fine_iters)
     timings["maps_s"] = time.perf_counter() - t0
-    bar.close()
-
-    # ---- 3. outputs
+    stage.bar.close()
     t0 = time.perf_counter()
-    out = _outputs(torch, full, px_full, lights, s, scale, maps, keep=not trusted)
+    out = _outputs(torch, full, px_full, stage.lights, s, scale, maps, keep=not stage.trusted)
     timings["outputs_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
-    refined, residual, psnr, prediction, share = out.maps, out.residual, out.psnr, out.prediction, out.ambient_share
-    light_entries = lights_to_entries(lights, scale)
-    ratio_run = (near_found or {}).get("loss_ratio") is not None  # the distant lamps ran as long again
     report = {
-        "psnr_db": [round(p, 3) for p in psnr],
-        "psnr_db_mean": round(float(np.mean(psnr)), 3),
-        "residual_mean": round(float(np.nanmean(residual)), 5),
-        "iterations": {"lights": light_iters + (s.lights.iters * (2 if ratio_run else 1) if near else 0), **iters_done},
+        "psnr_db": [round(p, 3) for p in out.psnr],
+        "psnr_db_mean": round(float(np.mean(out.psnr)), 3),
+        "residual_mean": round(float(np.nanmean(out.residual)), 5),
+        "iterations": {"lights": stage.iters, **iters_done},
         "pixels": int(mask.sum()),
-        "images": k_count,
+        "images": ph.obs.shape[0],
         "normal_change_deg_mean": round(out.normal_change_deg, 3),
         "light_variation": {"threshold": s.loss.variation_threshold, "weak_fraction": round(ph.weak_fraction, 4),
                             "warning": ph.warning},
         "photo_scale": scale,
-        "linear": None if linear_report is None else {**linear_report, **({} if linear is None else {
-            "contour_pixels": linear.contour_pixels, "residual": round(linear.residual, 4),
-            "inliers": round(linear.inliers, 4), "spread": round(linear.spread, 5)})},
-        "kept_network_maps": not trusted,
-        "ambient_share": round(share, 4),
-        **({"light_distance_median": dist} if near else {}),
-        **({"near_lamps": near_found} if near_found is not None else {}),
+        "linear": dict(chk.report),
+        "kept_network_maps": not stage.trusted,
+        "ambient_share": round(out.ambient_share, 4),
+        **({"light_distance_median": stage.distance} if stage.near else {}),
+        **({"near_lamps": stage.found} if stage.found is not None else {}),
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
-    return RefineResult(refined, light_entries, report, residual, ph.variation, ph.warning, prediction)
+    return RefineResult(out.maps, lights_to_entries(stage.lights, scale), report, out.residual, ph.variation,
+                        ph.warning, out.prediction)
 
 
 def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: RefineSettings, bar,
