@@ -619,6 +619,7 @@ def capture(
     refine_settings=None,
     lights: str | os.PathLike | None = None,
     ball: str | os.PathLike | None = None,
+    on_fit=None,
     **estimate_kwargs,
 ) -> tuple[MaterialMaps, Path]:
     """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`); then, optionally,
@@ -635,6 +636,7 @@ def capture(
     ``lights``: a light file (:mod:`matcap.lightfiles`) whose lights the fit holds instead of estimating them;
     ``ball``: "auto" or a mask file of a mirror ball inside the photos: the lights come from its highlights
     (:mod:`matcap.calibrate`), the ball is kept out of the object's mask and ``calibration.png`` is written.
+    ``on_fit(result, settings)``: called once the fit is done (:func:`refine_maps`).
     ``relight``: an environment map path, or a dict of :func:`matcap.relight.relight` settings (``env``,
     ``point``, ``spp``, ``size`` ...), or a list of them; each renders ``relight_<name>.exr/.png`` into the result
     folder. ``export``: a folder, or a dict of :func:`matcap.export.export` settings with ``out`` (``preset``,
@@ -708,7 +710,8 @@ def capture(
         maps, refine_writer = refine_maps(maps, [cap.images[i] for i in maps.meta["images_used"]], used,
                                           cap.colour, refine_settings, constants,
                                           progress=bool(estimate_kwargs.get("progress")), seed=seed,
-                                          device=estimate_kwargs.get("device", "cpu"), lights=used_lights)
+                                          device=estimate_kwargs.get("device", "cpu"), lights=used_lights,
+                                          on_fit=on_fit)
     maps.meta["images_used"] = [cap.picked[i] for i in maps.meta["images_used"]]  # indices among all the photos
     maps.meta.update(
         {
@@ -842,42 +845,27 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
 
 def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,
                 constants: dict[str, float] | None = None, *, progress: bool = False, seed: int = 0,
-                device: str = "cpu", lights=None):
+                device: str = "cpu", lights=None, on_fit=None):
     """Run :func:`matcap.refine.refine` on ``maps`` (the networks' output) and the photos they came from.
 
     Returns ``(refined maps, writer)``: ``writer(folder)`` writes lights.json / fit.json / residual.png /
     light_variation.png and returns their names. The network maps stay recorded only in capture.json's summary
-    (``refine.normal_change_deg_mean``); ``--constant`` maps stay constant. A light-variation warning is printed,
-    and where the maps are kept, a note saying why and what to do (give the lights; the glossy look, point
-    lights where the near-lamp check did not run).
+    (``refine.normal_change_deg_mean``); the ``constants`` maps stay constant.
     ``lights``: :class:`matcap.lightfiles.KnownLights` of ``images`` (held by the fit), or None (estimated).
+    ``on_fit(result, settings)``: called with the :class:`matcap.refine.RefineResult` (its warning, the reasons in
+    its report, the candidate light models judged) and the settings it ran with, as soon as the fit is done.
     """
-    import sys
-
     from matcap.refine import RefineSettings, refine
     from matcap.refine.outputs import write_refine_outputs
 
     s = settings if settings is not None else RefineSettings(seed=seed, device=device)
     held = {f"priors.{'metal' if k == 'metallic' else 'rough'}": 1e4 for k in (constants or {})}
-    if held:  # --constant maps stay where the user put them
+    if held:  # constant maps stay where the caller put them
         s = s.replace(held)
     result = refine(images, maps, s, progress=progress, lights=lights)
-    if result.warning:
-        print(f"warning: {result.warning}", file=sys.stderr)
+    if on_fit is not None:
+        on_fit(result, s)
     lin = result.report.get("linear") or {}
-    radii = (result.report.get("near_lamps") or {}).get("light_distance_radii")
-    if lin.get("check") == "near lamps" and radii is not None:  # (--refine-light point may keep them far)
-        print(f"note: the lamps were near the object (median {radii:.1f} object radii away): fitted as point lights, "
-              f"their positions in lights.json", file=sys.stderr)
-    if result.report.get("kept_network_maps"):
-        hint = ""
-        if lin.get("lambertian_only") and s.model.light != "point":
-            tips = (["a glossy object under a far lamp: try --glossy"] if not s.candidates.glossy else []) + (
-                [] if "near_fit" in lin else ["a lamp within a few object sizes: try --light-model point"])
-            hint = f" ({'; '.join(tips)})" if tips else ""
-        print(f"note: the fit kept the networks' maps: {lin.get('reason')}. Lights you know make the fit "
-              f"well-posed: give them with --lights FILE, or put a mirror ball in the photos (--ball auto){hint}",
-              file=sys.stderr)
     refined = result.maps.with_constants(constants or {})
     refined.meta = dict(maps.meta)
     r = result.report

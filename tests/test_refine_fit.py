@@ -106,11 +106,12 @@ def test_near_lamps(near_lit, model):
 def test_near_lamps_are_named_in_one_line(near_lit, capsys):
     """`matcap capture` / `matcap refine` say in one line that the lamps were found near, and how near."""
     from matcap.capture import refine_maps
+    from matcap.commands.capture import print_fit_notes
 
     truth, lights, photos, start = near_lit
     names = [f"p{i}.png" for i in range(len(photos))]
     s = RefineSettings().replace({"lights.iters": 250, "pixels.coarse_iters": 0, "pixels.fine_iters": 10})
-    refined, _ = refine_maps(start, photos, names, "linear", s)
+    refined, _ = refine_maps(start, photos, names, "linear", s, on_fit=print_fit_notes)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "lamps were near the object" in err[0] and "object radii away" in err[0], err
     assert refined.meta["refine"]["light_model"] == "point"  # capture.json says what was fitted

@@ -371,19 +371,21 @@ def test_kept_for_gloss_the_note_names_the_options(glossy_sphere, capsys):
     looks that did not run (the glossy look where it is off, point lights where the near-lamp check did not run),
     spelled as the calling command spells them. Where both looks ran: no tip."""
     from matcap.capture import refine_maps
+    from matcap.commands.capture import print_fit_notes
 
     truth, photos, start = glossy_sphere
     names = [f"p{i}.png" for i in range(len(photos))]
     strict = RefineSettings(seed=0).replace({"lights.kept_iters": 10, "candidates.glossy_ambient_far": 0.05})
-    refine_maps(start, photos, names, "linear", strict)
+    refine_maps(start, photos, names, "linear", strict, on_fit=print_fit_notes)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "kept the networks' maps" in err[0], err
     assert "infinitely far away" in err[0] and "ambient of 8%" in err[0] and "try" not in err[0], err
-    refine_maps(start, photos, names, "linear", RefineSettings(seed=0).replace({"lights.kept_iters": 10, "candidates.glossy": False}))
+    glossy_off = RefineSettings(seed=0).replace({"lights.kept_iters": 10, "candidates.glossy": False})
+    refine_maps(start, photos, names, "linear", glossy_off, on_fit=print_fit_notes)
     err = capsys.readouterr().err
     assert "try --glossy" in err and "try --light-model point" not in err, err
     unchecked = RefineSettings(seed=0).replace({"lights.kept_iters": 10, "candidates.near": False,
                                                  "candidates.glossy": False})
-    refine_maps(start, photos, names, "linear", unchecked)
+    refine_maps(start, photos, names, "linear", unchecked, on_fit=print_fit_notes)
     err = capsys.readouterr().err
     assert "try --glossy" in err and "try --light-model point" in err and "--lights FILE" in err, err
