@@ -663,10 +663,10 @@ def capture(
     known = None
     if lights is not None or ball is not None:
         if not refine:
-            raise MatcapError(f"{'--lights' if lights is not None else '--ball'} gives the fit its lights; it has no "
-                              f"use with --no-refine")
+            raise MatcapError(f"{'a light file' if lights is not None else 'a mirror ball'} gives the fit its lights; "
+                              f"it has no use without the fit")
         if lights is not None and ball is not None:
-            raise MatcapError("--lights and --ball both give the lights; choose one")
+            raise MatcapError("a light file and a mirror ball both give the lights; choose one")
     picked = pick_images(len(photo_names(folder)), max_images, seed)  # as load_capture picks them
     if lights is not None:
         known = read_lights_for(lights, folder, picked)

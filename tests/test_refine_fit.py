@@ -60,8 +60,9 @@ def test_outputs_and_determinism(scene, fitted):
         assert e["kind"] == "directional" and len(e["sh"]) == 9 and all(len(r) == 3 for r in e["sh"])
         assert abs(np.linalg.norm(e["direction"]) - 1) < 1e-5
     assert np.isnan(res.residual[~truth.mask]).all() and np.isfinite(res.residual[truth.mask]).all()
-    again = refine(photos, start, RefineSettings(seed=0).replace({"lights.iters": 30, "pixels.coarse_iters": 0, "pixels.fine_iters": 10}))
-    again2 = refine(photos, start, RefineSettings(seed=0).replace({"lights.iters": 30, "pixels.coarse_iters": 0, "pixels.fine_iters": 10}))
+    quick = RefineSettings(seed=0).replace({"lights.iters": 30, "pixels.coarse_iters": 0, "pixels.fine_iters": 10})
+    again = refine(photos, start, quick)
+    again2 = refine(photos, start, quick)
     assert np.array_equal(again.maps.normal, again2.maps.normal)
     assert again.lights == again2.lights
 
@@ -82,7 +83,8 @@ def test_near_lamps(near_lit, model):
     then fits their distances and keeps that fit (their loss is a fraction of distant lamps'), as `--refine-light
     point` does: measured 3.69 -> 1.94 degrees, light directions 1.7 degrees (median), distances 3.37."""
     truth, lights, photos, start = near_lit
-    res = refine(photos, start, RefineSettings().replace({"model.light": model, "lights.iters": 250, "pixels.fine_iters": 100}))
+    s = RefineSettings().replace({"model.light": model, "lights.iters": 250, "pixels.fine_iters": 100})
+    res = refine(photos, start, s)
     lin = res.report["linear"]
     assert not res.report["kept_network_maps"] and lin["check"] == "near lamps", lin
     assert "diffuse surface" in lin["reason_lambertian"]
@@ -332,12 +334,12 @@ def test_second_looks_run_in_order_and_gate(monkeypatch, radii, near_share, glos
                   **({"reason": "not Lambertian", "lambertian_only": True} if whole else {})}
         return F._Check(whole, None, None, None, report, "not Lambertian" if whole else None, whole)
 
-    def light_stage(torch, ph, chk, look, s, progress):
+    def light_stage(torch, ph, chk, model, s, progress):
         if not chk.whole:
-            ran.append(look)
+            ran.append(model)
         found = {"light_distance_radii": radii, "ambient_share": near_share, "loss_ratio": 0.99,
-                 "solved_fraction": 0.9} if look == "near" else None
-        return F._LightStage(object(), chk.reason is None, {}, None, look == "near", None, found, 0,
+                 "solved_fraction": 0.9} if model == "near" else None
+        return F._LightStage(object(), chk.reason is None, {}, None, model == "near", None, found, 0,
                              F._Bar(None, s, total=0), 0.0)
 
     def finish(torch, ph, maps, chk, stage, s, t_start):

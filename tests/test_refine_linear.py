@@ -158,7 +158,8 @@ def test_refine_trusts_a_capture_it_explains_and_finds_its_lights():
     before = _angles(start[mask], n[mask]).mean()
     errors = {}
     for weight in (0.0, 1.0):
-        res = refine(photos, maps, RefineSettings(seed=0).replace({"pixels.fine_iters": 60, "factorization.contour_weight": weight}))
+        s = RefineSettings(seed=0).replace({"pixels.fine_iters": 60, "factorization.contour_weight": weight})
+        res = refine(photos, maps, s)
         lin = res.report["linear"]
         assert lin["trusted"] and lin["residual"] < 0.05 and not res.report["kept_network_maps"]
         dirs = np.array([e["direction"] for e in res.lights])

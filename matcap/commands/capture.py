@@ -122,7 +122,7 @@ def fit_notes(result, settings) -> list[str]:
         tips = []
         if lin.get("lambertian_only") and settings.model.light != "point":
             listed = candidate_models(settings)
-            tips = [tip for look, tip in CANDIDATE_TIPS.items() if look not in listed]
+            tips = [tip for model, tip in CANDIDATE_TIPS.items() if model not in listed]
         hint = f" ({'; '.join(tips)})" if tips else ""
         lines.append(f"note: the fit kept the networks' maps: {lin.get('reason')}. Lights you know make the fit "
                      f"well-posed: give them with --lights FILE, or put a mirror ball in the photos (--ball auto)"
@@ -156,6 +156,12 @@ def run(args) -> int:
     from matcap.capture import REFINE_BY_DEFAULT
 
     do_refine = REFINE_BY_DEFAULT if args.refine is None else args.refine
+    if args.lights is not None or args.ball is not None:
+        if not do_refine:
+            raise MatcapError(f"{'--lights' if args.lights is not None else '--ball'} gives the fit its lights; it "
+                              f"has no use with --no-refine")
+        if args.lights is not None and args.ball is not None:
+            raise MatcapError("--lights and --ball both give the lights; choose one")
     settings = fit_settings(args, args.light_model, args.glossy) if do_refine else None
     spp = {"spp": args.spp} if args.spp is not None else {}
     relight = [{"env": env, **spp} for env in args.relight or []] + [{"point": p, **spp} for p in args.point or []]

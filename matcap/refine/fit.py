@@ -214,7 +214,8 @@ class RefineSettings:
         """The settings that :func:`dataclasses.asdict` (fit.json ``settings``) recorded as ``d``."""
         import dataclasses
 
-        kinds = {f.name: f.default_factory for f in dataclasses.fields(cls) if f.default_factory is not dataclasses.MISSING}
+        kinds = {f.name: f.default_factory for f in dataclasses.fields(cls)
+                 if f.default_factory is not dataclasses.MISSING}
         return cls(**{k: kinds[k](**v) if k in kinds else v for k, v in d.items()})
 
 
@@ -462,7 +463,8 @@ def _linear_lights(obs, mask, arrays, s: RefineSettings, rng, lambertian: bool =
     re-fixed by integrability only where the check can still trust it (kept captures need no lights from it)."""
     from matcap.refine.linear import contour_normals, factorize
 
-    sel, c_normal = contour_normals(mask, arrays["normal"], gate=s.factorization.contour_gate, nz=s.factorization.contour_nz)
+    fs = s.factorization
+    sel, c_normal = contour_normals(mask, arrays["normal"], gate=fs.contour_gate, nz=fs.contour_nz)
     rows, cols = np.nonzero(mask)
     on_contour = sel[rows, cols]
     inner = np.flatnonzero(~on_contour)
@@ -474,7 +476,7 @@ def _linear_lights(obs, mask, arrays, s: RefineSettings, rng, lambertian: bool =
     alb = arrays["base"][r, c] @ np.asarray(LUMA, np.float32)
     fit = factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.factorization.contour_weight)
     if _distrust(len(obs), fit, None, s, lambertian) is None:
-        fit = _integrable(fit, obs, mask, arrays["normal"], sel, c_normal, s.factorization.contour_weight, s.factorization.equal_lights)
+        fit = _integrable(fit, obs, mask, arrays["normal"], sel, c_normal, fs.contour_weight, fs.equal_lights)
     return fit
 
 
@@ -827,7 +829,7 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
 class Candidate:
     """One candidate light model of the estimated-lights path and what its fit found (:func:`_refine_estimated`).
 
-    look: "distant" (distant lights) or "point" (a lamp per photo whose distance the fit finds), the first
+    model: "distant" (distant lights) or "point" (a lamp per photo whose distance the fit finds), the first
     candidate, under the whole check; "near" (lamps whose distances the fit finds, starting from the networks'
     normals) or "glossy" (distant lamps under the Principled model alone), tried where the first failed only the
     check's residual / inliers part. lights: the fitted :class:`matcap.refine.model.LightParams` (fit units), None
@@ -840,7 +842,7 @@ class Candidate:
     reason: why the rule refused the candidate (one line), None where accepted. final: that refusal holds for every
     later candidate (the photos themselves fail the check)."""
 
-    look: str
+    model: str
     lights: Any = None
     solved_fraction: float | None = None
     ambient_share: float | None = None
@@ -853,7 +855,7 @@ class Candidate:
         """fit.json ``linear`` ``near_fit`` / ``principled_fit`` entry: what a refused later candidate found."""
         if self.lights is None:  # refused by the check before its fit
             return {"solved_fraction": self.solved_fraction}
-        if self.look == "near":
+        if self.model == "near":
             return {"ambient_share": self.ambient_share, "light_distance_radii": self.distance_radii,
                     "loss_ratio": self.loss_ratio, "solved_fraction": self.solved_fraction}
         return {"ambient_share": self.ambient_share, "solved_fraction": self.solved_fraction}
@@ -864,7 +866,7 @@ CHECK_NAMES = {"near": "near lamps", "glossy": "principled"}  # fit.json ``linea
 
 
 def candidate_models(s: RefineSettings) -> list[str]:
-    """The estimated path's candidate light models, in the order they are tried (:class:`Candidate` ``look``):
+    """The estimated path's candidate light models, in the order they are tried (:class:`Candidate` ``model``):
     distant lights, then near lamps (``candidates.near``), then glossy distant lamps (``candidates.glossy``); with
     light model "point": point lamps, then near lamps judged on their ambient alone."""
     if s.model.light == "point":
@@ -942,8 +944,8 @@ class _LightStage:
     seconds: float
 
 
-def _light_stage(torch, ph: _Photos, chk: _Check, look: str, s: RefineSettings, progress) -> _LightStage:
-    """The lights of candidate ``look`` on the light copy (:func:`_fit_lights`): from the factorization's lights
+def _light_stage(torch, ph: _Photos, chk: _Check, model: str, s: RefineSettings, progress) -> _LightStage:
+    """The lights of candidate ``model`` on the light copy (:func:`_fit_lights`): from the factorization's lights
     where the check ``chk`` passed (the subsample's maps free), else from the networks' maps (kept, fixed). Lamps
     ("point", "near") then come in from infinitely far; for "near" the ambient share, the lamps' distance in object
     radii and, where the rule needs it (:func:`_needs_loss_ratio`), the loss ratio against distant lamps fitted as
@@ -951,13 +953,13 @@ def _light_stage(torch, ph: _Photos, chk: _Check, look: str, s: RefineSettings, 
     t0 = time.perf_counter()
     device = torch.device(s.device)
     torch.manual_seed(s.seed)
-    near, gate = look in ("point", "near"), look == "near"
+    near, gate = model in ("point", "near"), model == "near"
     bar = _Bar(progress, s, near)
     h, w = ph.mask.shape
     hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.lights.side)
     trusted = chk.reason is None
     arrays, start, start_l = ph.arrays, None, None
-    if trusted and look != "near":  # the distant lamps' photo normals carry near lamps' falloff: near lamps start
+    if trusted and model != "near":  # the distant lamps' photo normals carry near lamps' falloff: near lamps start
         start = chk.start  # from the networks' normals (a near-lit dome 1.50 / 1.63 degrees, against 2.29 / 2.41)
         arrays = dict(arrays, normal=start)
         if hw_l == (h, w):
@@ -1012,12 +1014,12 @@ def _judge(c: Candidate, chk: _Check, earlier: list[Candidate], s: RefineSetting
        near-lamp fit left the lamps ``far_distance`` object radii away or more (or infinitely far)."""
     if chk.reason is not None:
         return chk.reason, not chk.lambertian_only
-    if c.look == "near" and c.ambient_share is not None:
+    if c.model == "near" and c.ambient_share is not None:
         return _near_verdict({"light_distance_radii": c.distance_radii, "ambient_share": c.ambient_share,
                               "loss_ratio": c.loss_ratio}, s), False
-    if c.look == "glossy":
+    if c.model == "glossy":
         cs = s.candidates
-        near = next((e for e in earlier if e.look == "near" and e.ambient_share is not None), None)
+        near = next((e for e in earlier if e.model == "near" and e.ambient_share is not None), None)
         far = near is not None and (near.distance_radii is None or near.distance_radii >= cs.far_distance)
         limit = max(cs.glossy_ambient, cs.glossy_ambient_far) if far else cs.glossy_ambient
         if near is not None and near.ambient_share > limit:
@@ -1076,14 +1078,14 @@ def _refine_estimated(torch, images, maps: MaterialMaps, s: RefineSettings, prog
     ph = _prepare(images, maps, s)
     checks: dict[bool, _Check] = {}
     tried: list[Candidate] = []
-    for look in candidate_models(s):
+    for model in candidate_models(s):
         whole = not tried
         chk = checks[whole] = checks.get(whole) or _check(ph, s, whole)
-        c = Candidate(look, solved_fraction=chk.report.get("solved_fraction"))
+        c = Candidate(model, solved_fraction=chk.report.get("solved_fraction"))
         tried.append(c)
         c.reason, c.final = _judge(c, chk, tried[:-1], s)
         if c.reason is None:
-            stage = _light_stage(torch, ph, chk, look, s, progress)
+            stage = _light_stage(torch, ph, chk, model, s, progress)
             c.lights = stage.lights
             if stage.found is not None:
                 c.ambient_share, c.distance_radii, c.loss_ratio = (
@@ -1093,14 +1095,14 @@ def _refine_estimated(torch, images, maps: MaterialMaps, s: RefineSettings, prog
                 stage.bar.close()
             else:
                 result = _finish(torch, ph, maps, chk, stage, s, t_start)
-                if look == "glossy":
+                if model == "glossy":
                     c.ambient_share = result.report["ambient_share"]
                     c.reason, c.final = _judge(c, chk, tried[:-1], s)
                 if c.reason is None:
                     return _accepted(result, tried)
         if c.final:
             break
-    kept = _finish(torch, ph, maps, checks[True], _light_stage(torch, ph, checks[True], tried[0].look, s, progress),
+    kept = _finish(torch, ph, maps, checks[True], _light_stage(torch, ph, checks[True], tried[0].model, s, progress),
                    s, t_start)
     return _kept(kept, tried)
 
@@ -1111,8 +1113,8 @@ def _accepted(result: RefineResult, tried: list[Candidate]) -> RefineResult:
     c, first, refused = tried[-1], tried[0], tried[1:-1]
     if c is not first:
         lin = result.report["linear"]
-        near = [e.reason for e in refused if e.look == "near"]
-        result.report["linear"] = {**lin, "check": CHECK_NAMES[c.look], "reason_lambertian": first.reason,
+        near = [e.reason for e in refused if e.model == "near"]
+        result.report["linear"] = {**lin, "check": CHECK_NAMES[c.model], "reason_lambertian": first.reason,
                                    **_records(refused), **({"reason_near": near[-1]} if near else {})}
     result.candidates = tried
     return result
@@ -1134,7 +1136,7 @@ def _kept(result: RefineResult, tried: list[Candidate]) -> RefineResult:
 def _records(later: list[Candidate]) -> dict[str, Any]:
     """fit.json ``linear`` entries of refused later candidates that had findings of their own: a fit, or the
     check's solved fraction (not those refused on an earlier candidate's findings before any fit)."""
-    return {RECORD_KEYS[e.look]: e.record() for e in later if e.lights is not None or e.final}
+    return {RECORD_KEYS[e.model]: e.record() for e in later if e.lights is not None or e.final}
 
 
 def _finish(torch, ph: _Photos, maps: MaterialMaps, chk: _Check, stage: _LightStage, s: RefineSettings,
