@@ -73,7 +73,7 @@ def main(argv=None) -> int:
                     help="lambert (default), or the fit's own Principled model at --roughness")
     ap.add_argument("--roughness", type=float, default=0.8)
     ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--set", action="append", help="RefineSettings field=value (repeatable)")
+    ap.add_argument("--set", action="append", help="RefineSettings group.field=value (repeatable)")
     ap.add_argument("--keep", default=None, help="write the captures (and cached network maps) under this folder")
     args = ap.parse_args(argv)
     import torch

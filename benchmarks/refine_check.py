@@ -14,7 +14,7 @@
                                                            # Mitsuba under 12 known lights: is the fit trusted?
     python benchmarks/refine_check.py detail [--crops docs/images/detail_crops.png]  # a dome carrying a CC0 normal
                                                            # map's fine detail: is it brought back? (crops figure)
-    ... --set light_iters=0 --set prior_normal=0.1        # any RefineSettings field
+    ... --set lights.iters=0 --set priors.normal=0.1      # any RefineSettings field ("group.field")
 
 Every row runs the bundled networks first (the "before"), then :func:`matcap.refine.refine` (the "after").
 ``--threads`` sets torch's CPU threads (default: torch's own choice).
@@ -44,7 +44,8 @@ def _models():
 
 
 def _settings(args):
-    """RefineSettings(seed=0) with the ``--set KEY=VALUE`` overrides (values read as Python literals)."""
+    """RefineSettings(seed=0) with the ``--set KEY=VALUE`` overrides (KEY "group.field", e.g. lights.iters; values
+    read as Python literals)."""
     import ast
 
     from matcap.refine import RefineSettings
@@ -56,7 +57,7 @@ def _settings(args):
             over[key] = ast.literal_eval(text)
         except (ValueError, SyntaxError):
             over[key] = text
-    return RefineSettings(seed=0, **over)
+    return RefineSettings(seed=0).replace(over)
 
 
 def _check(res) -> str:
@@ -283,9 +284,7 @@ def dome(args) -> None:
     to its contour carrying the detail and colours of the CC0 `wood_table_worn` set, glossy (roughness 0.4) and
     matte (0.9) (``--roughness``), rendered with Mitsuba under 16 known directional lights in a 45-degree cone
     plus a faint ambient (``--dome-light``: or point lights, an environment map, both); the fit as the check
-    decides, and trusted whatever the check's residual / inliers say (``trust_residual=inf``, ``trust_inliers=0``)."""
-    import dataclasses
-
+    decides, and trusted whatever the check's residual / inliers say (``checks.residual=inf``, ``checks.inliers=0``)."""
     from matcap.capture import estimate
     from matcap.formats import load_maps
     from matcap.refine import refine
@@ -310,7 +309,7 @@ def dome(args) -> None:
         maps = estimate(photos, truth.mask, models=models, seed=0)
         s = _settings(args)
         checked = refine(photos, maps, s)
-        forced = refine(photos, maps, dataclasses.replace(s, trust_residual=float("inf"), trust_inliers=0.0))
+        forced = refine(photos, maps, s.replace({"checks.residual": float("inf"), "checks.inliers": 0.0}))
         cells = [f"{_mean_err(maps.normal, truth.normal, truth.mask):.2f}"]
         for res in (checked, forced):
             d = "-" if args.dome_light == "env" else (  # light directions at the centre (none under the map alone)
@@ -462,7 +461,7 @@ if {args.given_lights}:
     known = KnownLights(L.numpy().astype(float), None, "file", "timing", "order")
 rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 t0 = time.perf_counter()
-res = refine(list(photos), start, RefineSettings(**json.loads({settings!r})), lights=known)
+res = refine(list(photos), start, RefineSettings.from_dict(json.loads({settings!r})), lights=known)
 lin = res.report["linear"] or {{}}
 path = ("known lights" if known is not None else "first check: " + ("fitted" if lin.get("trusted") else "kept")
         if "check" not in lin else lin["check"] + " look kept")
@@ -522,7 +521,7 @@ def main(argv=None) -> int:
                          "relief")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
-                    help="a RefineSettings field for the fit (repeatable), e.g. light_iters=0")
+                    help="a RefineSettings field for the fit, group.field=value (repeatable), e.g. lights.iters=0")
     args = ap.parse_args(argv)
     if args.side is None:
         args.side = 256 if args.what in ("dome", "detail") else 512

@@ -620,6 +620,7 @@ def capture(
     lights: str | os.PathLike | None = None,
     ball: str | os.PathLike | None = None,
     flat: bool | None = None,
+    on_fit=None,
     **estimate_kwargs,
 ) -> tuple[MaterialMaps, Path]:
     """Read ``folder``, estimate the maps and write a result folder (see :mod:`matcap.results`); then, optionally,
@@ -639,6 +640,7 @@ def capture(
     ``flat``: the photos show a flat sample facing the camera (True), not (False), or decide from the networks'
     normals (None: :func:`matcap.refine.flat.check_flat`); a flat sample's lamps, unless given, are found from
     their falloff over the plane (recorded in capture.json as ``flat``).
+    ``on_fit(result, settings)``: called once the fit is done (:func:`refine_maps`).
     ``relight``: an environment map path, or a dict of :func:`matcap.relight.relight` settings (``env``,
     ``point``, ``spp``, ``size`` ...), or a list of them; each renders ``relight_<name>.exr/.png`` into the result
     folder. ``export``: a folder, or a dict of :func:`matcap.export.export` settings with ``out`` (``preset``,
@@ -665,12 +667,13 @@ def capture(
     known = None
     if lights is not None or ball is not None:
         if not refine:
-            raise MatcapError(f"{'--lights' if lights is not None else '--ball'} gives the fit its lights; it has no "
-                              f"use with --no-refine")
+            raise MatcapError(f"{'a light file' if lights is not None else 'a mirror ball'} gives the fit its lights; "
+                              f"it has no use without the fit")
         if lights is not None and ball is not None:
-            raise MatcapError("--lights and --ball both give the lights; choose one")
+            raise MatcapError("a light file and a mirror ball both give the lights; choose one")
     if flat and not refine:
-        raise MatcapError("--flat fits a plane's lamps and maps to the photos; it has no use with --no-refine")
+        raise MatcapError("a flat sample's lamps are found by the fit of the photos; without the fit there is nothing "
+                          "to take as flat")
     picked = pick_images(len(photo_names(folder)), max_images, seed)  # as load_capture picks them
     if flat and lights is None and ball is None and len(picked) < 3:
         raise MatcapError(f"a flat sample's lamps are found from at least 3 photos, got {len(picked)}")
@@ -724,7 +727,7 @@ def capture(
                                           cap.colour, refine_settings, constants,
                                           progress=bool(estimate_kwargs.get("progress")), seed=seed,
                                           device=estimate_kwargs.get("device", "cpu"), lights=used_lights,
-                                          flat=flat)
+                                          flat=flat, on_fit=on_fit)
     maps.meta["images_used"] = [cap.picked[i] for i in maps.meta["images_used"]]  # indices among all the photos
     maps.meta.update(
         {
@@ -857,8 +860,8 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
     sub[ys[pick], xs[pick]] = True
     maps_sub = dataclasses.replace(maps, mask=sub)
     base = settings if settings is not None else RefineSettings()
-    quick = dataclasses.replace(base, light_iters=min(base.light_iters, 200), coarse_iters=0,
-                                fine_iters=min(base.fine_iters, 10))
+    quick = base.replace({"lights.iters": min(base.lights.iters, 200), "pixels.coarse_iters": 0,
+                          "pixels.fine_iters": min(base.pixels.fine_iters, 10)})
     rmse = {}
     flat, _ = flat_choice(flat, maps)
     for lin, cap in caps.items():
@@ -884,43 +887,28 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
 
 def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,
                 constants: dict[str, float] | None = None, *, progress: bool = False, seed: int = 0,
-                device: str = "cpu", lights=None, flat: bool = False):
+                device: str = "cpu", lights=None, flat: bool = False, on_fit=None):
     """Run :func:`matcap.refine.refine` on ``maps`` (the networks' output) and the photos they came from.
 
     Returns ``(refined maps, writer)``: ``writer(folder)`` writes lights.json / fit.json / residual.png /
     light_variation.png and returns their names. The network maps stay recorded only in capture.json's summary
-    (``refine.normal_change_deg_mean``); ``--constant`` maps stay constant. A light-variation warning is printed,
-    and where the maps are kept, a note saying why and what to do (give the lights; the glossy look, point
-    lights where the near-lamp check did not run).
-    ``lights``: :class:`matcap.lightfiles.KnownLights` of ``images`` (held by the fit), or None (estimated);
+    (``refine.normal_change_deg_mean``); the ``constants`` maps stay constant.
+    ``lights``: :class:`matcap.lightfiles.KnownLights` of ``images`` (held by the fit), or None (estimated).
+    ``on_fit(result, settings)``: called with the :class:`matcap.refine.RefineResult` (its warning, the reasons in
+    its report, the candidate light models judged) and the settings it ran with, as soon as the fit is done.
     ``flat``: a flat sample (:func:`matcap.refine.refine`'s ``flat``).
     """
-    import sys
-
     from matcap.refine import RefineSettings, refine
     from matcap.refine.outputs import write_refine_outputs
 
     s = settings if settings is not None else RefineSettings(seed=seed, device=device)
-    held = {f"prior_{'metal' if k == 'metallic' else 'rough'}": 1e4 for k in (constants or {})}
-    if held:  # --constant maps stay where the user put them
-        s = dataclasses.replace(s, **held)
+    held = {f"priors.{'metal' if k == 'metallic' else 'rough'}": 1e4 for k in (constants or {})}
+    if held:  # constant maps stay where the caller put them
+        s = s.replace(held)
     result = refine(images, maps, s, progress=progress, lights=lights, flat=flat)
-    if result.warning:
-        print(f"warning: {result.warning}", file=sys.stderr)
+    if on_fit is not None:
+        on_fit(result, s)
     lin = result.report.get("linear") or {}
-    radii = (result.report.get("near_lamps") or {}).get("light_distance_radii")
-    if lin.get("check") == "near lamps" and radii is not None:  # (--refine-light point may keep them far)
-        print(f"note: the lamps were near the object (median {radii:.1f} object radii away): fitted as point lights, "
-              f"their positions in lights.json", file=sys.stderr)
-    if result.report.get("kept_network_maps"):
-        hint = ""
-        if lin.get("lambertian_only") and s.light_model != "point":
-            tips = (["a glossy object under a far lamp: try --glossy"] if s.trust_ambient <= 0 else []) + (
-                [] if "near_fit" in lin else ["a lamp within a few object sizes: try --light-model point"])
-            hint = f" ({'; '.join(tips)})" if tips else ""
-        print(f"note: the fit kept the networks' maps: {lin.get('reason')}. Lights you know make the fit "
-              f"well-posed: give them with --lights FILE, or put a mirror ball in the photos (--ball auto){hint}",
-              file=sys.stderr)
     refined = result.maps.with_constants(constants or {})
     refined.meta = dict(maps.meta)
     r = result.report
@@ -929,7 +917,7 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
                    r["lights"] if "lights" in r else {"source": "estimated"}),
         "psnr_db_mean": r["psnr_db_mean"], "normal_change_deg_mean": r["normal_change_deg_mean"],
         "light_model": (r["lights"]["kind"] if "lights" in r else
-                        "point" if lin.get("check") == "near lamps" else s.light_model) if lights is None
+                        "point" if lin.get("check") == "near lamps" else s.model.light) if lights is None
         else lights.record()["kind"],  # what was fitted
         "seconds": r["timings"]["total_s"],
         "weak_light_variation_fraction": r["light_variation"]["weak_fraction"],

@@ -49,7 +49,7 @@ def test_capture_refine_writes_lights_fit_and_diagnostics_and_refine_reruns(tiny
     first = lights["images"][0]
     assert first["file"] == "img_00.png" and first["kind"] == "directional" and len(first["sh"]) == 9
     fit = json.loads((out / "fit.json").read_text())
-    assert len(fit["psnr_db"]) == 5 and fit["settings"]["seed"] == 0 and fit["settings"]["trust_ambient"] == 0.05
+    assert len(fit["psnr_db"]) == 5 and fit["settings"]["seed"] == 0 and fit["settings"]["candidates"]["glossy"]
     # tiny random-weight networks: their normals cannot fix the factorization's ambiguity, the check says so and
     # the maps are kept (no per-pixel iterations), with the reason in fit.json
     assert fit["kept_network_maps"] and fit["iterations"]["fine"] == 0 and fit["linear"]["reason"]
@@ -66,7 +66,7 @@ def test_capture_refine_writes_lights_fit_and_diagnostics_and_refine_reruns(tiny
     entries = json.loads((out / "lights.json").read_text())["images"]
     assert all(("position" if e["kind"] == "point" else "direction") in e for e in entries)  # a lamp left
     fit = json.loads((out / "fit.json").read_text())  # infinitely far by the fit is a directional entry
-    assert fit["settings"]["trust_ambient"] == 0.0 and fit["settings"]["light_model"] == "point"
+    assert not fit["settings"]["candidates"]["glossy"] and fit["settings"]["model"]["light"] == "point"
     assert "light_distance_median" in fit  # the lamps' distances were fitted
     assert json.loads((out / "capture.json").read_text())["tool"] == "matcap refine"
 

@@ -60,8 +60,9 @@ def test_outputs_and_determinism(scene, fitted):
         assert e["kind"] == "directional" and len(e["sh"]) == 9 and all(len(r) == 3 for r in e["sh"])
         assert abs(np.linalg.norm(e["direction"]) - 1) < 1e-5
     assert np.isnan(res.residual[~truth.mask]).all() and np.isfinite(res.residual[truth.mask]).all()
-    again = refine(photos, start, RefineSettings(seed=0, light_iters=30, coarse_iters=0, fine_iters=10))
-    again2 = refine(photos, start, RefineSettings(seed=0, light_iters=30, coarse_iters=0, fine_iters=10))
+    quick = RefineSettings(seed=0).replace({"lights.iters": 30, "pixels.coarse_iters": 0, "pixels.fine_iters": 10})
+    again = refine(photos, start, quick)
+    again2 = refine(photos, start, quick)
     assert np.array_equal(again.maps.normal, again2.maps.normal)
     assert again.lights == again2.lights
 
@@ -82,7 +83,8 @@ def test_near_lamps(near_lit, model):
     then fits their distances and keeps that fit (their loss is a fraction of distant lamps'), as `--refine-light
     point` does: measured 3.69 -> 1.94 degrees, light directions 1.7 degrees (median), distances 3.37."""
     truth, lights, photos, start = near_lit
-    res = refine(photos, start, RefineSettings(light_model=model, light_iters=250, fine_iters=100))
+    s = RefineSettings().replace({"model.light": model, "lights.iters": 250, "pixels.fine_iters": 100})
+    res = refine(photos, start, s)
     lin = res.report["linear"]
     assert not res.report["kept_network_maps"] and lin["check"] == "near lamps", lin
     assert "diffuse surface" in lin["reason_lambertian"]
@@ -106,11 +108,12 @@ def test_near_lamps(near_lit, model):
 def test_near_lamps_are_named_in_one_line(near_lit, capsys):
     """`matcap capture` / `matcap refine` say in one line that the lamps were found near, and how near."""
     from matcap.capture import refine_maps
+    from matcap.commands.capture import print_fit_notes
 
     truth, lights, photos, start = near_lit
     names = [f"p{i}.png" for i in range(len(photos))]
-    s = RefineSettings(light_iters=250, coarse_iters=0, fine_iters=10)
-    refined, _ = refine_maps(start, photos, names, "linear", s)
+    s = RefineSettings().replace({"lights.iters": 250, "pixels.coarse_iters": 0, "pixels.fine_iters": 10})
+    refined, _ = refine_maps(start, photos, names, "linear", s, on_fit=print_fit_notes)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "lamps were near the object" in err[0] and "object radii away" in err[0], err
     assert refined.meta["refine"]["light_model"] == "point"  # capture.json says what was fitted
@@ -304,7 +307,7 @@ def test_near_lamp_verdict(radii, share, ratio, model, needle):
     from matcap.refine.fit import _near_verdict
 
     found = {"light_distance_radii": radii, "ambient_share": share, "loss_ratio": ratio}
-    why = _near_verdict(found, RefineSettings(light_model=model))
+    why = _near_verdict(found, RefineSettings().replace({"model.light": model}))
     assert (why is None) if needle is None else (needle in why), why
 
 
@@ -318,27 +321,37 @@ def test_near_lamp_verdict(radii, share, ratio, model, needle):
 ])
 def test_second_looks_run_in_order_and_gate(monkeypatch, radii, near_share, glossy_share, trust, want_looks,
                                             want_check):
-    """Control flow of :func:`refine` where the Lambertian check alone fails: the near-lamp look first (its lamps
-    come out ``radii`` object radii away, beyond the near limit or explaining little: not kept), then the distant
-    (glossy) look only where the near fit's ambient share is within ``trust_ambient`` (``trust_ambient_far`` where
-    the lamps stayed ``far_distance`` away), kept where its own is."""
+    """Control flow of :func:`refine` where the Lambertian check alone fails: the near-lamp candidate first (its
+    lamps come out ``radii`` object radii away, beyond the near limit or explaining little: not kept), then glossy
+    distant lamps only where the near fit's ambient share is within ``candidates.glossy_ambient``
+    (``glossy_ambient_far`` where the lamps stayed ``far_distance`` away), kept where its own is."""
     from matcap.refine import fit as F
 
     ran = []
 
-    def fake(torch, images, maps, s, progress, lambertian=True, near=False, gate=False):
-        if lambertian:
-            rep = {"linear": {"lambertian_only": True, "reason": "not Lambertian"}, "kept_network_maps": True}
-            return F.RefineResult(maps=maps, lights=[], report=rep, residual=None, variation=None)
-        ran.append("near" if near else "glossy")
-        if near:
-            found = {"light_distance_radii": radii, "ambient_share": near_share, "loss_ratio": 0.99}
-            return {"reason": F._near_verdict(found, s), "near": found}
-        rep = {"linear": {"solved_fraction": 0.9}, "ambient_share": glossy_share, "kept_network_maps": False}
+    def check(ph, s, whole):  # the first candidate fails the Lambertian part alone; the later ones pass the rest
+        report = {"solved_fraction": 0.9, "trusted": not whole,
+                  **({"reason": "not Lambertian", "lambertian_only": True} if whole else {})}
+        return F._Check(whole, None, None, None, report, "not Lambertian" if whole else None, whole)
+
+    def light_stage(torch, ph, chk, model, s, progress):
+        if not chk.whole:
+            ran.append(model)
+        found = {"light_distance_radii": radii, "ambient_share": near_share, "loss_ratio": 0.99,
+                 "solved_fraction": 0.9} if model == "near" else None
+        return F._LightStage(object(), chk.reason is None, {}, None, model == "near", None, found, 0,
+                             F._Bar(None, s, total=0), 0.0)
+
+    def finish(torch, ph, maps, chk, stage, s, t_start):
+        rep = {"linear": dict(chk.report), "ambient_share": glossy_share, "kept_network_maps": not stage.trusted}
         return F.RefineResult(maps=maps, lights=[], report=rep, residual=None, variation=None)
 
-    monkeypatch.setattr(F, "_refine", fake)
-    res = F.refine([], None, RefineSettings(trust_ambient=trust))
+    monkeypatch.setattr(F, "_prepare", lambda images, maps, s: None)
+    monkeypatch.setattr(F, "_check", check)
+    monkeypatch.setattr(F, "_light_stage", light_stage)
+    monkeypatch.setattr(F, "_finish", finish)
+    res = F.refine([], None, RefineSettings().replace({"candidates.glossy": trust > 0,
+                                                         "candidates.glossy_ambient": trust}))
     assert ran == want_looks
     lin = res.report["linear"]
     assert lin.get("check") == want_check

@@ -56,7 +56,7 @@ def test_known_lights_recover_a_glossy_sphere(glossy):
 
 def test_given_relative_intensities_move_only_one_scale(glossy):
     truth, lights, photos, start = glossy
-    quick = RefineSettings(seed=0, light_iters=60, coarse_iters=0, fine_iters=5)
+    quick = RefineSettings(seed=0).replace({"lights.iters": 60, "pixels.coarse_iters": 0, "pixels.fine_iters": 5})
     res = refine(photos, start, quick, lights=_known(lights, intensities=True))
     ratio = np.array([e["intensity"] for e in res.lights]) / np.array([l.irradiance for l in lights])
     assert (ratio.std(0) / ratio.mean(0)).max() < 1e-4, ratio  # the given ratios, exactly

@@ -158,7 +158,8 @@ def test_refine_trusts_a_capture_it_explains_and_finds_its_lights():
     before = _angles(start[mask], n[mask]).mean()
     errors = {}
     for weight in (0.0, 1.0):
-        res = refine(photos, maps, RefineSettings(seed=0, fine_iters=60, contour_weight=weight))
+        s = RefineSettings(seed=0).replace({"pixels.fine_iters": 60, "factorization.contour_weight": weight})
+        res = refine(photos, maps, s)
         lin = res.report["linear"]
         assert lin["trusted"] and lin["residual"] < 0.05 and not res.report["kept_network_maps"]
         dirs = np.array([e["direction"] for e in res.lights])
@@ -198,14 +199,14 @@ def _bumpy_plane(side: int = 64, amplitude: float = 1.0):
     return n, mask, base, _model_photos(n, mask, base, 0.6, lights, 2.0)
 
 
-QUICK = dict(seed=0, fine_iters=10, coarse_iters=0, light_iters=10)
+QUICK = {"seed": 0, "pixels.fine_iters": 10, "pixels.coarse_iters": 0, "lights.iters": 10}
 
 
 def test_a_flat_sample_keeps_the_maps():
     """One normal for every pixel: the photos are rank 1 and cannot tell where the lights were."""
     n, mask, base, photos = _bumpy_plane(amplitude=0.0)
     maps = MaterialMaps(normal=n, mask=mask, base_color=base)
-    res = refine(photos, maps, RefineSettings(**QUICK))
+    res = refine(photos, maps, RefineSettings().replace(QUICK))
     lin = res.report["linear"]
     assert not lin["trusted"] and lin["spread"] < 0.02 and "too flat" in lin["reason"]
     assert res.report["kept_network_maps"] and np.array_equal(res.maps.normal, n)
@@ -215,13 +216,13 @@ def test_lights_that_turn_most_normals_away_are_not_trusted():
     """A bumpy plane (spread 0.09, residual 2 %: the photos are fine) but a prior unrelated to the surface
     (random normals): the matrix it picks gives lights under which almost no pixel faces the camera."""
     n, mask, base, photos = _bumpy_plane()
-    good = refine(photos, MaterialMaps(normal=n, mask=mask, base_color=base), RefineSettings(**QUICK))
+    good = refine(photos, MaterialMaps(normal=n, mask=mask, base_color=base), RefineSettings().replace(QUICK))
     assert good.report["linear"]["trusted"] and good.report["linear"]["solved_fraction"] > 0.95
     rng = np.random.default_rng(1)
     noise = rng.normal(size=n.shape)
     noise[..., 2] = np.abs(noise[..., 2]) + 0.3
     noise = (noise / np.linalg.norm(noise, axis=-1, keepdims=True)).astype(np.float32)
-    bad = refine(photos, MaterialMaps(normal=noise, mask=mask, base_color=base), RefineSettings(**QUICK))
+    bad = refine(photos, MaterialMaps(normal=noise, mask=mask, base_color=base), RefineSettings().replace(QUICK))
     lin = bad.report["linear"]
     assert not lin["trusted"] and lin["solved_fraction"] < 0.5 and "facing the camera" in lin["reason"]
     assert np.array_equal(bad.maps.normal, noise)
@@ -272,7 +273,7 @@ def test_equal_irradiance_picks_the_bas_relief_a_flat_prior_misses():
     flat /= np.linalg.norm(flat, axis=-1, keepdims=True)
     assert float(np.mean(_angles(flat, n))) > 20.0
     errs = {}
-    for w in (0.0, RefineSettings().equal_lights, 1000.0):
+    for w in (0.0, RefineSettings().factorization.equal_lights, 1000.0):
         a = integrable_ambiguity(n, mask, flat, mask.astype(float), lights=lights, equal_lights=w, sigma=0.0)
         errs[w] = float(np.mean(_angles(n @ a.T, n))), float(np.median(_angles(lights @ np.linalg.inv(a), lights)))
     ws = sorted(errs)
@@ -294,7 +295,7 @@ def test_a_good_prior_keeps_its_bas_relief_under_unequal_lamps():
     good = n + rng.normal(0, 0.05, n.shape)
     good /= np.linalg.norm(good, axis=-1, keepdims=True)
     errs = {}
-    for w in (RefineSettings().equal_lights, 1000.0):
+    for w in (RefineSettings().factorization.equal_lights, 1000.0):
         a = integrable_ambiguity(n, mask, good, mask.astype(float), lights=lights, equal_lights=w, sigma=0.0)
         errs[w] = float(np.mean(_angles(n @ a.T, n))), float(np.median(_angles(lights @ np.linalg.inv(a), lights)))
     for normal_err, light_err in errs.values():
@@ -354,14 +355,14 @@ def test_a_fit_that_needs_a_strong_ambient_keeps_the_maps(glossy_sphere):
     which runs first, finds the lamps infinitely far and needs an ambient of 8 % (measured 0.080), so the
     distant-lamp look does not run; both reasons, the maps bit for bit."""
     truth, photos, start = glossy_sphere
-    res = refine(photos, start, RefineSettings(seed=0, trust_ambient_far=0.05))
+    res = refine(photos, start, RefineSettings(seed=0).replace({"candidates.glossy_ambient_far": 0.05}))
     lin = res.report["linear"]
     assert res.report["kept_network_maps"] and not lin["trusted"]
     assert 0.05 < lin["near_fit"]["ambient_share"] < 0.1 and "principled_fit" not in lin
     assert "diffuse surface" in lin["reason"] and "infinitely far" in lin["reason"], lin["reason"]
     assert "ambient of 8%" in lin["reason"] and "up to 5%" in lin["reason"], lin["reason"]
     assert np.array_equal(res.maps.normal, start.normal)
-    off = refine(photos, start, RefineSettings(seed=0, trust_ambient=0.0, kept_light_iters=10))
+    off = refine(photos, start, RefineSettings(seed=0).replace({"candidates.glossy": False, "lights.kept_iters": 10}))
     assert off.report["kept_network_maps"] and "principled_fit" not in off.report["linear"]
     assert "ambient of 8%" not in off.report["linear"]["reason"]
 
@@ -371,18 +372,21 @@ def test_kept_for_gloss_the_note_names_the_options(glossy_sphere, capsys):
     looks that did not run (the glossy look where it is off, point lights where the near-lamp check did not run),
     spelled as the calling command spells them. Where both looks ran: no tip."""
     from matcap.capture import refine_maps
+    from matcap.commands.capture import print_fit_notes
 
     truth, photos, start = glossy_sphere
     names = [f"p{i}.png" for i in range(len(photos))]
-    strict = RefineSettings(seed=0, kept_light_iters=10, trust_ambient_far=0.05)
-    refine_maps(start, photos, names, "linear", strict)
+    strict = RefineSettings(seed=0).replace({"lights.kept_iters": 10, "candidates.glossy_ambient_far": 0.05})
+    refine_maps(start, photos, names, "linear", strict, on_fit=print_fit_notes)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "kept the networks' maps" in err[0], err
     assert "infinitely far away" in err[0] and "ambient of 8%" in err[0] and "try" not in err[0], err
-    refine_maps(start, photos, names, "linear", RefineSettings(seed=0, kept_light_iters=10, trust_ambient=0.0))
+    glossy_off = RefineSettings(seed=0).replace({"lights.kept_iters": 10, "candidates.glossy": False})
+    refine_maps(start, photos, names, "linear", glossy_off, on_fit=print_fit_notes)
     err = capsys.readouterr().err
     assert "try --glossy" in err and "try --light-model point" not in err, err
-    unchecked = RefineSettings(seed=0, kept_light_iters=10, near_check=False, trust_ambient=0.0)
-    refine_maps(start, photos, names, "linear", unchecked)
+    unchecked = RefineSettings(seed=0).replace({"lights.kept_iters": 10, "candidates.near": False,
+                                                 "candidates.glossy": False})
+    refine_maps(start, photos, names, "linear", unchecked, on_fit=print_fit_notes)
     err = capsys.readouterr().err
     assert "try --glossy" in err and "try --light-model point" in err and "--lights FILE" in err, err

@@ -1,7 +1,6 @@
 """matcap.refine.solve: the batched Cholesky solve and the per-pixel Levenberg-Marquardt."""
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -190,12 +189,12 @@ def test_the_pixel_solve_converges():
     m = truth.mask
 
     def solve(settings, iters):
-        out = F._solve_pixels(torch, prob, px0, lights, settings, settings.cauchy, iters, F._Bar(None, settings),
-                              "maps")
+        out = F._solve_pixels(torch, prob, px0, lights, settings, settings.loss.cauchy, iters,
+                              F._Bar(None, settings), "maps")
         normal = np.zeros(m.shape + (3,), np.float32)
         normal[m] = out.normal().detach().numpy()
         with torch.no_grad():
-            per, _ = F._loss(torch, prob, out, lights, settings, settings.cauchy)
+            per, _ = F._loss(torch, prob, out, lights, settings, settings.loss.cauchy)
         return float(angular_error_map(normal, truth.normal, m)[m].mean()), float(per.mean())
 
     s = RefineSettings(seed=0)
@@ -210,8 +209,8 @@ def test_the_pixel_solve_does_not_depend_on_the_chunks():
     _, _, prob, lights, px0 = _glossy_sphere_problem(32)
     outs = []
     for obs in (262144, 12 * 300, 12 * 97):  # one chunk; 300 pixels; 256 (the smallest chunk)
-        s = dataclasses.replace(RefineSettings(seed=0), lm_observations=obs)
-        outs.append(F._solve_pixels(torch, prob, px0, lights, s, s.cauchy, 8, F._Bar(None, s), "maps"))
+        s = RefineSettings(seed=0).replace({"pixels.lm_observations": obs})
+        outs.append(F._solve_pixels(torch, prob, px0, lights, s, s.loss.cauchy, 8, F._Bar(None, s), "maps"))
     assert len(prob) > 600
     for other in outs[1:]:
         assert all(torch.equal(a, b) for a, b in zip(outs[0].tensors(), other.tensors()))

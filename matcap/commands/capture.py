@@ -95,11 +95,52 @@ def add_fit_options(p) -> None:
 
 
 def fit_settings(args, light_model: str, glossy: bool):
-    """RefineSettings from the shared fit options."""
-    from matcap.refine import GLOSSY_TRUST_AMBIENT, RefineSettings
+    """RefineSettings from the shared fit options: ``--light-model`` is ``model.light``, ``--glossy`` /
+    ``--no-glossy`` is ``candidates.glossy``, ``--seed`` and ``--device`` are ``seed`` and ``device``."""
+    from matcap.refine import RefineSettings
 
-    return RefineSettings(light_model=light_model, seed=args.seed, device=args.device,
-                          trust_ambient=GLOSSY_TRUST_AMBIENT if glossy else 0.0)
+    return RefineSettings(seed=args.seed, device=args.device).replace(
+        {"model.light": light_model, "candidates.glossy": glossy})
+
+
+#: What a candidate light model that the settings left off the estimated-lights path is for, and the flag that
+#: adds it (:func:`matcap.refine.fit.candidate_models`).
+CANDIDATE_TIPS = {"glossy": "a glossy object under a far lamp: try --glossy",
+                  "near": "a lamp within a few object sizes: try --light-model point"}
+
+
+def fit_notes(result, settings) -> list[str]:
+    """The lines `matcap capture` and `matcap refine` print once the fit is done (``result``: a
+    :class:`matcap.refine.RefineResult`, ``settings`` those it ran with): its light-variation warning; where the
+    lamps were found near, how near; where the networks' maps were kept, why (the fit's reasons) and what to do:
+    give the lights, or add a candidate light model the settings left off where only the Lambertian part of the
+    check failed."""
+    from matcap.refine.fit import candidate_models
+
+    lines = [f"warning: {result.warning}"] if result.warning else []
+    lin = result.report.get("linear") or {}
+    radii = (result.report.get("near_lamps") or {}).get("light_distance_radii")
+    if lin.get("check") == "near lamps" and radii is not None:
+        lines.append(f"note: the lamps were near the object (median {radii:.1f} object radii away): fitted as point "
+                     f"lights, their positions in lights.json")
+    if result.report.get("kept_network_maps"):
+        tips = []
+        if lin.get("lambertian_only") and settings.model.light != "point":
+            listed = candidate_models(settings)
+            tips = [tip for model, tip in CANDIDATE_TIPS.items() if model not in listed]
+        hint = f" ({'; '.join(tips)})" if tips else ""
+        lines.append(f"note: the fit kept the networks' maps: {lin.get('reason')}. Lights you know make the fit "
+                     f"well-posed: give them with --lights FILE, or put a mirror ball in the photos (--ball auto)"
+                     f"{hint}")
+    return lines
+
+
+def print_fit_notes(result, settings) -> None:
+    """:func:`fit_notes` on stderr."""
+    import sys
+
+    for line in fit_notes(result, settings):
+        print(line, file=sys.stderr)
 
 
 def run(args) -> int:
@@ -120,6 +161,14 @@ def run(args) -> int:
     from matcap.capture import REFINE_BY_DEFAULT
 
     do_refine = REFINE_BY_DEFAULT if args.refine is None else args.refine
+    if args.lights is not None or args.ball is not None:
+        if not do_refine:
+            raise MatcapError(f"{'--lights' if args.lights is not None else '--ball'} gives the fit its lights; it "
+                              f"has no use with --no-refine")
+        if args.lights is not None and args.ball is not None:
+            raise MatcapError("--lights and --ball both give the lights; choose one")
+    if args.flat and not do_refine:
+        raise MatcapError("--flat fits a plane's lamps and maps to the photos; it has no use with --no-refine")
     settings = fit_settings(args, args.light_model, args.glossy) if do_refine else None
     spp = {"spp": args.spp} if args.spp is not None else {}
     relight = [{"env": env, **spp} for env in args.relight or []] + [{"point": p, **spp} for p in args.point or []]
@@ -134,7 +183,7 @@ def run(args) -> int:
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
         constants=constants, max_side=args.max_side, relight=relight, export=export, refine=do_refine,
-        refine_settings=settings, lights=args.lights, ball=args.ball, flat=args.flat,
+        refine_settings=settings, lights=args.lights, ball=args.ball, flat=args.flat, on_fit=print_fit_notes,
     )
     flat = maps.meta.get("flat") or {}
     lamps = (maps.meta.get("refine") or {}).get("flat_lamps")

@@ -34,7 +34,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from matcap.capture import downscale_arrays, load_capture, read_lights_for, refine_maps
-    from matcap.commands.capture import fit_settings
+    from matcap.commands.capture import fit_settings, print_fit_notes
     from matcap.errors import MatcapError
     from matcap.results import check_not_replacing_inputs, check_output_dir, read_result, write_result
     from networks.inference import check_device
@@ -78,7 +78,7 @@ def run(args) -> int:
         known = read_lights_for(args.lights, args.photos, [cap.files.index(n) for n in names])
     settings = fit_settings(args, args.light_model, args.glossy)
     refined, writer = refine_maps(maps, images, list(names), cap.colour, settings, meta.get("constant_maps") or {},
-                                  progress=not args.quiet, lights=known)
+                                  progress=not args.quiet, lights=known, on_fit=print_fit_notes)
     refined.meta["tool"] = "matcap refine"
     refined.meta["colour_handling"] = cap.colour  # as decoded here (--linear / --srgb / --tone-curve may differ)
     refined.meta.pop("tone_curve_contrast", None)

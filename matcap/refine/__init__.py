@@ -7,6 +7,6 @@ from (and anchored to) the networks' maps. torch only (no Mitsuba). See docs/ref
 - :mod:`matcap.refine.lightfile`: lights.json reader/writer and conversion to ``scenes.lights`` (relight);
 - :mod:`matcap.refine.outputs`: lights.json / fit.json / residual.png / light_variation.png.
 """
-from matcap.refine.fit import GLOSSY_TRUST_AMBIENT, RefineResult, RefineSettings, light_variation, refine
+from matcap.refine.fit import RefineResult, RefineSettings, light_variation, refine
 
-__all__ = ["GLOSSY_TRUST_AMBIENT", "RefineResult", "RefineSettings", "light_variation", "refine"]
+__all__ = ["RefineResult", "RefineSettings", "light_variation", "refine"]

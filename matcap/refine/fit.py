@@ -9,13 +9,17 @@ Cauchy loss (shadows, interreflections and highlights the model cannot explain a
 light-variation weight (:func:`light_variation`), and the prior pulls normals, base colour, roughness and metallic
 toward the network's values (this is what stops the drift into the generalized bas-relief family).
 
-Coarse to fine:
-  1. lights: the Lambertian factorization (:mod:`matcap.refine.linear`; or least squares from the network
-     normals), then a joint robust fit of the lights and of the maps of a random subsample of pixels of a
-     downsampled copy of the photos; near lamps start there as distant ones and then fit their distances;
-  2. maps: with the lights fixed every pixel is an independent problem: Levenberg-Marquardt on all pixels at once
-     (in chunks; :mod:`matcap.refine.solve`), on a half-size copy first, whose corrections are upsampled as the
-     start of the full-size solve.
+The fit's stages (the photos' decoding and the networks run before, in :mod:`matcap.capture`):
+  1. photos: :func:`_prepare` (checks, fit units, clipping levels, light variation);
+  2. lights, on a downsampled copy of the photos: known (:func:`_refine_known`: a light file or a mirror ball; the
+     directions held) or estimated (:func:`_refine_estimated`: the Lambertian factorization of
+     :mod:`matcap.refine.linear` and its check, then the candidate light models of :func:`candidate_models` in
+     order, judged by one rule, :func:`_judge`); each a joint robust fit of the lights and of the maps of a pixel
+     subsample (:func:`_fit_lights`);
+  3. per pixel (:func:`_solve_maps`): with the lights fixed every pixel is an independent problem:
+     Levenberg-Marquardt on all pixels at once (in chunks; :mod:`matcap.refine.solve`), on a half-size copy first,
+     whose corrections are upsampled as the start of the full-size solve;
+  4. outputs (:func:`_outputs`): the maps, re-renders, residual, fit.json.
 Photos are scaled so that their mean over the mask is 0.5 (the fit's units); lights are reported in photo units.
 """
 from __future__ import annotations
@@ -35,38 +39,71 @@ from scenes.materialmaps import MaterialMaps
 LUMA = (0.2126, 0.7152, 0.0722)
 
 
-GLOSSY_TRUST_AMBIENT = 0.05  # RefineSettings.trust_ambient by default (``--no-glossy``: 0)
+@dataclass
+class ModelSettings:
+    """What the fit models: the lights' kind, the fixed ambient, which maps move."""
+
+    light: str = "directional"
+    """Estimated lights: "directional", distant lights (where they fail to explain the photos, other candidate light
+    models are tried, see :class:`CandidateSettings`); "point", a lamp per photo whose distance the fit always finds.
+    Known lights keep the kind their file gives."""
+    ambient: str = "shared"
+    """"shared": one order-2 SH ambient for every photo (a fixed room light); "per-image"; "none"."""
+    fit_brdf: bool = True
+    """False: roughness and metallic stay the networks' (normals and base colour are still fitted)."""
 
 
 @dataclass
-class RefineSettings:
-    """Settings of :func:`refine` (recorded in fit.json), grouped by stage. The fit's photo units: the photos are
-    scaled so that their mean over the mask is 0.5. Prior weights are per pixel, against a data term summed over
-    the photos (so more photos weigh more)."""
+class LossSettings:
+    """The data term, in the fit's units (the photos scaled so that their mean over the mask is 0.5)."""
 
-    # -- the light model (estimated lights; known lights keep the kind their file gives)
-    light_model: str = "directional"
-    """"directional": distant lights (where they fail to explain the photos, near lamps are tried, see
-    ``near_check``); "point": a lamp per photo whose distance the fit always finds."""
-    ambient: str = "shared"
-    """"shared": one order-2 SH ambient for every photo (a fixed room light); "per-image"; "none"."""
+    cauchy: float = 0.15
+    """Scale of the Cauchy loss on the photo residuals: shadows, interreflections and highlights the model cannot
+    explain weigh less."""
+    variation_threshold: float = 0.08
+    """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
+    less, down to 0.1, and a warning names the share of such pixels)."""
 
-    # -- lights stage: a downsampled copy, a subsample of its pixels, Adam on lights (and those pixels' maps)
-    light_side: int = 256
+
+@dataclass
+class PriorSettings:
+    """Weights of the prior that holds every pixel near its start, per pixel, against a data term summed over the
+    photos (so more photos weigh more)."""
+
+    normal: float = 0.5
+    """Weight of |n - n_prior|^2 (n_prior: calibrated Lambertian normals from the photos where solved, else the
+    networks')."""
+    base: float = 0.5
+    """Weight of mean_c (log(b + 0.02) - log(b_net + 0.02))^2."""
+    rough: float = 0.5
+    """Weight of (r - r_net)^2."""
+    metal: float = 0.5
+    """Weight of (m - m_net)^2."""
+
+
+@dataclass
+class LightStageSettings:
+    """The light stage: Adam on the lights (and the maps of a pixel subsample) of a downsampled copy."""
+
+    side: int = 256
     """The light fit runs on a copy whose longer side is at most this many pixels."""
-    light_pixels: int = 4096
+    pixels: int = 4096
     """Pixels of that copy taking part in the light fit."""
-    light_iters: int = 400
-    """Adam steps of the light fit."""
-    kept_light_iters: int = 200
+    iters: int = 400
+    """Adam steps of the light fit (and of a near-lamp fit's distances)."""
+    kept_iters: int = 200
     """Adam steps of the light fit where the maps are kept (the lights are fitted to the networks' maps)."""
-    lr_light: float = 0.02
+    lr: float = 0.02
     """Adam step size of the light parameters (directions, log intensities, ambient, inverse distances)."""
     lr_pixel: float = 0.05
     """Adam step size of the subsample's map parameters during the light fit."""
 
-    # -- estimated lights: the Lambertian factorization and its bas-relief choice (matcap.refine.linear)
-    linear_pixels: int = 20000
+
+@dataclass
+class FactorizationSettings:
+    """Estimated lights: the Lambertian factorization and its bas-relief choice (:mod:`matcap.refine.linear`)."""
+
+    pixels: int = 20000
     """Pixels of the light-fit copy used by the factorization (every occluding-contour pixel too)."""
     contour_weight: float = 1.0
     """Weight of the occluding contour's normals against the networks' in fixing the bas-relief."""
@@ -78,76 +115,130 @@ class RefineSettings:
     """Weight of "every photo got about the same irradiance" (one lamp moved at a similar distance) against the
     prior's misfit, relative to the prior's own, in choosing the bas-relief; 0 ignores it."""
 
-    # -- estimated lights: the checks that decide whether the maps may move
-    trust_residual: float = 0.05
+
+@dataclass
+class CheckSettings:
+    """Estimated lights: the factorization's check, which decides whether the photos may move the maps."""
+
+    residual: float = 0.05
     """The factorization must explain the photos to this relative RMS ..."""
-    trust_inliers: float = 0.85
-    """... with this share of inlier observations (else: not distant lights on a matte-like surface);"""
-    trust_solved: float = 0.5
+    inliers: float = 0.85
+    """... with this share of inlier observations (these two: distant lights on a matte-like surface; only the
+    first candidate light model must pass them);"""
+    solved: float = 0.5
     """... under the lights found, this share of the pixels must get a Lambertian normal facing the camera;"""
-    trust_spread: float = 0.02
+    spread: float = 0.02
     """... and the photos' third singular value must be at least this share of the first (a flat sample's
     photos are nearly rank 1: its one normal cannot tell the lights apart)."""
-    trust_ambient: float = GLOSSY_TRUST_AMBIENT
-    """Glossy look: where only the residual / inliers check fails and the near-lamp look is not kept, distant
-    lamps are fitted anyway and kept if the fixed ambient (of that fit and of the near-lamp fit) gives at most this
-    share of the object's irradiance; 0 turns the look off."""
-    trust_ambient_far: float = 0.1
-    """... up to this share where the near-lamp fit left the lamps at least ``far_distance`` object radii away."""
-    far_distance: float = 30.0
-    """Object radii beyond which a near-lamp fit's lamps count as far (a fixed room light lets them stay far)."""
-    near_check: bool = True
-    """Near-lamp look: where only the residual / inliers check fails, fit lamps whose distances the fit finds
-    and keep that fit if the conditions below hold."""
+
+
+@dataclass
+class CandidateSettings:
+    """Estimated lights: the candidate light models tried after distant lights (or point lamps) where only the
+    residual / inliers part of the check failed, and the limits that accept them (:func:`_judge`)."""
+
+    near: bool = True
+    """Near lamps: fit lamps whose distances the fit finds, accepted where the conditions below hold."""
     near_distance: float = 15.0
     """... the median lamp within this many object radii (the radius of the disc as large as the mask);"""
     near_ambient: float = 0.2
-    """... the fixed ambient at most this share of the object's irradiance (with light_model "point": only this);"""
+    """... the fixed ambient at most this share of the object's irradiance (with light model "point": only this);"""
     near_loss_ratio: float = 0.8
     """... and the distances cut the light fit's loss to at most this share of what distant lamps reach ..."""
     near_dark: float = 0.05
     """... unless the fixed ambient is at most this share (a dark room, where highlights dominate the loss)."""
+    glossy: bool = True
+    """Glossy distant lamps (light model "directional" only): distant lamps under the Principled model alone,
+    accepted where the fixed ambient of that fit and of the near-lamp fit before it is small."""
+    glossy_ambient: float = 0.05
+    """... at most this share of the object's irradiance ..."""
+    glossy_ambient_far: float = 0.1
+    """... or at most this share where the near-lamp fit left the lamps ``far_distance`` object radii away or more."""
+    far_distance: float = 30.0
+    """Object radii beyond which a near-lamp fit's lamps count as far (a fixed room light lets them stay far)."""
 
-    # -- per-pixel stage: Levenberg-Marquardt per pixel (matcap.refine.solve)
+
+@dataclass
+class PixelStageSettings:
+    """The per-pixel stage: Levenberg-Marquardt per pixel with the lights fixed (:mod:`matcap.refine.solve`)."""
+
     coarse_iters: int = 10
     """Iterations at half size (skipped when the maps are 128 px or smaller)."""
     fine_iters: int = 20
     """Iterations at full size."""
-    pixel_tol: float = 1e-4
+    tol: float = 1e-4
     """A pixel is done once two iterations in a row lowered its loss by less than this share of it."""
     lm_observations: int = 262144
     """Pixels x photos per chunk of the solve (its Jacobians' memory grows with both)."""
     chunk: int = 32768
     """Pixels per chunk of the re-render."""
-    cauchy: float = 0.15
-    """Scale of the Cauchy loss on the photo residuals, in the fit's units: shadows, interreflections and
-    highlights the model cannot explain weigh less."""
-    prior_normal: float = 0.5
-    """Weight of |n - n_prior|^2 (n_prior: calibrated Lambertian normals from the photos where solved, else the
-    networks')."""
-    prior_base: float = 0.5
-    """Weight of mean_c (log(b + 0.02) - log(b_net + 0.02))^2."""
-    prior_rough: float = 0.5
-    """Weight of (r - r_net)^2."""
-    prior_metal: float = 0.5
-    """Weight of (m - m_net)^2."""
-    fit_brdf: bool = True
-    """False: roughness and metallic stay the networks' (normals and base colour are still fitted)."""
-    variation_threshold: float = 0.08
-    """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
-    less, and a warning names the share of such pixels)."""
 
+
+@dataclass
+class RefineSettings:
+    """Settings of :func:`refine`, one group per stage (recorded nested in fit.json ``settings``)."""
+
+    model: ModelSettings = field(default_factory=ModelSettings)
+    loss: LossSettings = field(default_factory=LossSettings)
+    priors: PriorSettings = field(default_factory=PriorSettings)
+    lights: LightStageSettings = field(default_factory=LightStageSettings)
+    factorization: FactorizationSettings = field(default_factory=FactorizationSettings)
+    checks: CheckSettings = field(default_factory=CheckSettings)
+    candidates: CandidateSettings = field(default_factory=CandidateSettings)
+    pixels: PixelStageSettings = field(default_factory=PixelStageSettings)
     seed: int = 0
     """Seed of every random choice (pixel subsamples); the fit is repeatable bit for bit for a seed and device."""
     device: str = "cpu"
     """torch device."""
+
+    def replace(self, changes: dict[str, Any]) -> "RefineSettings":
+        """A copy with ``changes`` made: keys "group.field" (``{"lights.iters": 0}``) or "seed" / "device"; a
+        MatcapError names an unknown key."""
+        import dataclasses
+
+        groups: dict[str, dict[str, Any]] = {}
+        top: dict[str, Any] = {}
+        names = {f.name: f for f in dataclasses.fields(self)}
+        for key, value in changes.items():
+            group, _, name = key.partition(".")
+            if group not in names or bool(name) != dataclasses.is_dataclass(getattr(self, group)) or (
+                    name and name not in {f.name for f in dataclasses.fields(getattr(self, group))}):
+                raise MatcapError(f"no fit setting {key!r} (settings: {', '.join(_setting_keys(self))})")
+            if name:
+                groups.setdefault(group, {})[name] = value
+            else:
+                top[group] = value
+        nested = {g: dataclasses.replace(getattr(self, g), **v) for g, v in groups.items()}
+        return dataclasses.replace(self, **nested, **top)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "RefineSettings":
+        """The settings that :func:`dataclasses.asdict` (fit.json ``settings``) recorded as ``d``."""
+        import dataclasses
+
+        kinds = {f.name: f.default_factory for f in dataclasses.fields(cls)
+                 if f.default_factory is not dataclasses.MISSING}
+        return cls(**{k: kinds[k](**v) if k in kinds else v for k, v in d.items()})
+
+
+def _setting_keys(s: RefineSettings) -> list[str]:
+    """Every settings key, "group.field" or top-level, in the dataclasses' order."""
+    import dataclasses
+
+    out = []
+    for f in dataclasses.fields(s):
+        v = getattr(s, f.name)
+        out += [f"{f.name}.{g.name}" for g in dataclasses.fields(v)] if dataclasses.is_dataclass(v) else [f.name]
+    return out
 
 
 @dataclass
 class RefineResult:
     """maps: refined :class:`MaterialMaps`; lights: lights.json ``images`` entries (photo units); report: fit.json;
     residual (H, W) float32 RMS re-render error / the photos' mean (NaN off-mask); variation (H, W) float32
-    light variation (NaN off-mask); warning: one line or None."""
+    light variation (NaN off-mask); warning: one line or None; prediction (K, H, W, 3) re-renders in photo units;
+    candidates: the estimated lights' candidate light models judged, in order (:class:`Candidate`; empty with
+    known lights)."""
 
     maps: MaterialMaps
     lights: list[dict[str, Any]]
@@ -155,7 +246,8 @@ class RefineResult:
     residual: np.ndarray
     variation: np.ndarray
     warning: str | None = None
-    prediction: np.ndarray | None = field(default=None, repr=False)  # (K, H, W, 3) re-renders, photo units
+    prediction: np.ndarray | None = field(default=None, repr=False)
+    candidates: list["Candidate"] = field(default_factory=list, repr=False)
 
 
 # ----------------------------------------------------------------------------------------------- checks
@@ -289,8 +381,8 @@ def _prepare(images, maps: MaterialMaps, s: RefineSettings) -> _Photos:
     sat_level = np.array([o[mask].max(axis=0) * 0.999 for o in obs], np.float32)
     sat_level = np.where(sat_level > 0, sat_level, np.inf).astype(np.float32)
     variation = light_variation(stack, mask)
-    frac_weak, warning = variation_warning(variation, mask, s.variation_threshold)
-    weight = np.clip(np.nan_to_num(variation) / s.variation_threshold, 0.1, 1.0).astype(np.float32)
+    frac_weak, warning = variation_warning(variation, mask, s.loss.variation_threshold)
+    weight = np.clip(np.nan_to_num(variation) / s.loss.variation_threshold, 0.1, 1.0).astype(np.float32)
     return _Photos(mask, obs, scale, sat_level, _maps_arrays(maps), variation, frac_weak, warning, weight)
 
 
@@ -347,10 +439,10 @@ def _loss(torch, prob: _Problem, px, lights, s: RefineSettings, c: float, brdf: 
     res = torch.where(prob.sat & (res > 0), torch.zeros_like(res), res)  # clipped highlights: only a lower bound
     rho = torch.log1p((res / c) ** 2)
     data = rho.mean(-1).sum(0) * prob.weight
-    prior = s.prior_normal * ((n - prob.n0) ** 2).sum(-1)
-    prior = prior + s.prior_base * ((torch.log(b + 0.02) - torch.log(prob.b0 + 0.02)) ** 2).mean(-1)
+    prior = s.priors.normal * ((n - prob.n0) ** 2).sum(-1)
+    prior = prior + s.priors.base * ((torch.log(b + 0.02) - torch.log(prob.b0 + 0.02)) ** 2).mean(-1)
     if brdf:
-        prior = prior + s.prior_rough * (r - prob.r0) ** 2 + s.prior_metal * (m - prob.m0) ** 2
+        prior = prior + s.priors.rough * (r - prob.r0) ** 2 + s.priors.metal * (m - prob.m0) ** 2
     return data + prior, data
 
 
@@ -371,19 +463,20 @@ def _linear_lights(obs, mask, arrays, s: RefineSettings, rng, lambertian: bool =
     re-fixed by integrability only where the check can still trust it (kept captures need no lights from it)."""
     from matcap.refine.linear import contour_normals, factorize
 
-    sel, c_normal = contour_normals(mask, arrays["normal"], gate=s.contour_gate, nz=s.contour_nz)
+    fs = s.factorization
+    sel, c_normal = contour_normals(mask, arrays["normal"], gate=fs.contour_gate, nz=fs.contour_nz)
     rows, cols = np.nonzero(mask)
     on_contour = sel[rows, cols]
     inner = np.flatnonzero(~on_contour)
-    if len(inner) > s.linear_pixels:
-        inner = np.sort(rng.choice(inner, size=s.linear_pixels, replace=False))
+    if len(inner) > s.factorization.pixels:
+        inner = np.sort(rng.choice(inner, size=s.factorization.pixels, replace=False))
     idx = np.sort(np.concatenate([inner, np.flatnonzero(on_contour)]))
     r, c = rows[idx], cols[idx]
     lum = _luminance(obs, r, c)
     alb = arrays["base"][r, c] @ np.asarray(LUMA, np.float32)
-    fit = factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.contour_weight)
+    fit = factorize(lum, arrays["normal"][r, c], alb, on_contour[idx], c_normal[r, c], s.factorization.contour_weight)
     if _distrust(len(obs), fit, None, s, lambertian) is None:
-        fit = _integrable(fit, obs, mask, arrays["normal"], sel, c_normal, s.contour_weight, s.equal_lights)
+        fit = _integrable(fit, obs, mask, arrays["normal"], sel, c_normal, fs.contour_weight, fs.equal_lights)
     return fit
 
 
@@ -420,18 +513,18 @@ def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSett
               lambertian: bool = True) -> str | None:
     """Why the factorization's lights may not move the maps (one line), or None: the check of docs/refine.md
     (``solved_fraction`` None: the photos' normals are not solved yet, that part of the check waits;
-    ``lambertian`` False: the residual / inliers part is left to the Principled fit's ambient share)."""
+    ``lambertian`` False: the residual / inliers part is left out, for the candidates judged after it)."""
     if k_count < 4:
         return f"{k_count} photos: per-pixel normals need 4 or more"
-    if linear.spread < s.trust_spread:
+    if linear.spread < s.checks.spread:
         return (f"the surface is too flat for the photos to tell where the lights were (third singular value "
-                f"{linear.spread:.3f} of the first; trusted from {s.trust_spread:g})")
-    if lambertian and (linear.residual > s.trust_residual or linear.inliers < s.trust_inliers):
+                f"{linear.spread:.3f} of the first; trusted from {s.checks.spread:g})")
+    if lambertian and (linear.residual > s.checks.residual or linear.inliers < s.checks.inliers):
         return (f"distant lights on a diffuse surface do not explain the photos (residual {linear.residual:.0%}, "
-                f"inliers {linear.inliers:.0%}; trusted from {s.trust_residual:.0%} / {s.trust_inliers:.0%})")
-    if solved_fraction is not None and solved_fraction < s.trust_solved:  # implausible lights: normals face away
+                f"inliers {linear.inliers:.0%}; trusted from {s.checks.residual:.0%} / {s.checks.inliers:.0%})")
+    if solved_fraction is not None and solved_fraction < s.checks.solved:  # implausible lights: normals face away
         return (f"under the lights found only {solved_fraction:.0%} of the object's pixels get a normal facing the "
-                f"camera (trusted from {s.trust_solved:.0%})")
+                f"camera (trusted from {s.checks.solved:.0%})")
     return None
 
 
@@ -499,7 +592,7 @@ def _init_lights(torch, prob: _Problem, s: RefineSettings, device, directions=No
         ints.append(e.clamp(min=1e-4))
     vec = torch.stack(dirs)
     log_i = torch.log(torch.stack(ints))
-    sh = torch.zeros(1 if s.ambient != "per-image" else k_count, 9, 3, device=device)
+    sh = torch.zeros(1 if s.model.ambient != "per-image" else k_count, 9, 3, device=device)
     return LightParams("directional", vec, log_i, sh)
 
 
@@ -559,19 +652,12 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     """Fit lights and maps to the photos.
 
     images: K (H, W, 3) float32 linear RGB photos (at the maps' size); maps: the networks' :class:`MaterialMaps`
-    (missing BRDF maps start from ``with_defaults``). Deterministic for ``settings.seed`` on one device.
-    ``lights``: a :class:`matcap.lightfiles.KnownLights` per photo, held by the fit (:func:`_refine_known`).
+    (missing BRDF maps start from ``with_defaults``); lights: :class:`matcap.lightfiles.KnownLights` of the photos
+    (held: :func:`_refine_known`) or None (estimated: :func:`_refine_estimated`). Deterministic for
+    ``settings.seed`` on one device. ``progress``: see :class:`_Bar`.
     ``flat``: the photos show a flat sample facing the camera: without ``lights``, its lamps are found from the
     falloff of their light over the plane (:func:`matcap.refine.flat.flat_lights`) and held like known ones; where
     the falloff does not place them (distant lamps), they are estimated as an object's.
-
-    Where the photos fail only the Lambertian part of the check (residual / inliers: a near lamp's falloff, a glossy
-    object, or light that is not one lamp per photo), the fit runs again without it, with lights whose distance
-    it finds (``near_check``), and is kept where :func:`_near_verdict` finds the lamps near and explaining the
-    photos (decided after the light fit); then, where that fit's fixed ambient gave at most ``trust_ambient`` of the
-    object's irradiance (a dark room, lamps far), with distant lights, kept if its own ambient share is as small
-    (:func:`ambient_share`). Otherwise the first
-    pass's kept maps are returned, with every reason.
     """
     import torch
 
@@ -590,53 +676,7 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
             return _refine_known(torch, images, maps, s, progress, lights, flat=found)
         if lights is not None:
             return _refine_known(torch, images, maps, s, progress, lights, flat={} if flat else None)
-        point = s.light_model == "point"
-        first = _refine(torch, images, maps, s, progress, near=point)
-        lin = first.report.get("linear") or {}
-        if not lin.get("lambertian_only"):
-            return first
-        # the Lambertian part of the check alone failed: the Principled fit may still explain the photos
-        looks = (["near"] if point or s.near_check else []) + (["glossy"] if s.trust_ambient > 0 and not point else [])
-        whys, tried = [], {}
-        limit = s.trust_ambient  # the glossy look's ambient limit: more where the near look left the lamps far
-        for look in looks:
-            second = _refine(torch, images, maps, s, progress, lambertian=False, near=look == "near",
-                             gate=look == "near")
-            if isinstance(second, dict):  # the check, or the near look's verdict, failed before the per-pixel fit
-                whys.append(second.get("reason"))
-                tried[look] = second.get("near") or {"solved_fraction": second.get("solved_fraction")}
-                if "near" not in second:
-                    break  # the check itself failed: the same for every look
-                share, radii = second["near"]["ambient_share"], second["near"]["light_distance_radii"]
-                if radii is None or radii >= s.far_distance:
-                    limit = max(s.trust_ambient, s.trust_ambient_far)
-                if share > limit:  # not one lamp per photo even with distances free: no distant look
-                    far = radii is None or radii > s.near_distance  # the verdict named only the distance
-                    if "glossy" in looks and far:
-                        whys.append(f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (distant "
-                                    f"lamps tried up to {limit:.0%})")
-                    break
-                continue  # the lamps are far, in a dark room: the glossy look may still apply
-            rep = second.report
-            lin2, share = rep["linear"], rep["ambient_share"]
-            if look == "near":
-                ok, why = True, None
-            else:
-                ok = share <= limit
-                why = (f"the Principled fit needed a fixed ambient of {share:.0%} of the light (trusted up to "
-                       f"{limit:.0%}): not one light per photo")
-                tried[look] = {"ambient_share": share, "solved_fraction": lin2.get("solved_fraction")}
-            if ok:
-                rep["linear"] = {**lin2, "check": "near lamps" if look == "near" else "principled",
-                                 "reason_lambertian": lin["reason"], **_looks(tried, but=look),
-                                 **({"reason_near": whys[-1]} if whys else {})}
-                return second
-            whys.append(why)
-        if whys:
-            extra = [w for w in dict.fromkeys(whys) if w and w not in lin["reason"]]  # each reason once
-            first.report["linear"] = {**lin, **({"reason": f"{lin['reason']}; without that part of the check: "
-                                                           + "; ".join(extra)} if extra else {}), **_looks(tried)}
-        return first
+        return _refine_estimated(torch, images, maps, s, progress)
     finally:
         torch.use_deterministic_algorithms(was[0], warn_only=was[1])
 
@@ -667,7 +707,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
 
     # ---- 1. lights: intensities and ambient for the given directions
     t0 = time.perf_counter()
-    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.light_side)
+    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.lights.side)
     centre = _centre(torch, mask).numpy().astype(np.float64)
     directions = np.asarray(known.directions, np.float64)
     inv_distance = None
@@ -691,7 +731,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, photo_report, positions=known.positions)
         arr_l = dict(arr_l, normal=start_l)
     n_l = int(mask_l.sum())
-    idx = np.sort(rng.choice(n_l, size=min(n_l, s.light_pixels), replace=False))
+    idx = np.sort(rng.choice(n_l, size=min(n_l, s.lights.pixels), replace=False))
     prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
     lights = _init_lights(torch, prob, s, device, directions)
     if inv_distance is not None:
@@ -701,14 +741,14 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     if given is not None:  # relative intensities: start from them at the least-squares overall scale
         given_log = torch.as_tensor(np.log(np.maximum(given, 1e-12)), dtype=torch.float32, device=device)
         lights.log_intensity = given_log + (lights.log_intensity - given_log).mean(0, keepdim=True)
-    lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", s.light_iters, directions_free=False,
+    lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", s.lights.iters, directions_free=False,
                             relative_to=given_log)
     timings["lights_s"] = time.perf_counter() - t0
 
     # ---- 2. per pixel
     t0 = time.perf_counter()
     full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
-                                            s.coarse_iters, s.fine_iters)
+                                            s.pixels.coarse_iters, s.pixels.fine_iters)
     timings["maps_s"] = time.perf_counter() - t0
     bar.close()
 
@@ -723,11 +763,11 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "psnr_db": [round(p, 3) for p in out.psnr],
         "psnr_db_mean": round(float(np.mean(out.psnr)), 3),
         "residual_mean": round(float(np.nanmean(out.residual)), 5),
-        "iterations": {"lights": s.light_iters, **iters_done},
+        "iterations": {"lights": s.lights.iters, **iters_done},
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(out.normal_change_deg, 3),
-        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(ph.weak_fraction, 4),
+        "light_variation": {"threshold": s.loss.variation_threshold, "weak_fraction": round(ph.weak_fraction, 4),
                             "warning": ph.warning},
         "photo_scale": scale,
         "linear": None,
@@ -784,7 +824,7 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
 
     px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
     offset = None
-    light_t = [lights.sh] if s.ambient != "none" else []
+    light_t = [lights.sh] if s.model.ambient != "none" else []
     if relative_to is not None:
         offset = (lights.log_intensity - relative_to).mean(0, keepdim=True).detach().clone()
         light_t.append(offset)
@@ -792,9 +832,9 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
         light_t.append(lights.log_intensity)
     if directions_free:
         light_t += [lights.vec] + ([lights.inv_distance] if lights.kind == "near" else [])
-    groups = [{"params": light_t, "lr": s.lr_light}]
+    groups = [{"params": light_t, "lr": s.lights.lr}]
     if maps_free:
-        groups.append({"params": px.tensors(), "lr": s.lr_pixel})
+        groups.append({"params": px.tensors(), "lr": s.lights.lr_pixel})
     for g in groups:
         for t in g["params"]:
             t.requires_grad_(True)
@@ -808,7 +848,7 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
             opt.zero_grad()
             if offset is not None:
                 lights.log_intensity = relative_to + offset
-            per, data = _loss(torch, prob, px, lights, s, s.cauchy, s.fit_brdf)
+            per, data = _loss(torch, prob, px, lights, s, s.loss.cauchy, s.model.fit_brdf)
             loss = per.mean()
             loss.backward()
             opt.step()
@@ -825,36 +865,241 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
     return lights.detached(), data_mean
 
 
+# ----------------------------------------------------------------------------------------------- estimated lights
+
+
+@dataclass
+class Candidate:
+    """One candidate light model of the estimated-lights path and what its fit found (:func:`_refine_estimated`).
+
+    model: "distant" (distant lights) or "point" (a lamp per photo whose distance the fit finds), the first
+    candidate, under the whole check; "near" (lamps whose distances the fit finds, starting from the networks'
+    normals) or "glossy" (distant lamps under the Principled model alone), tried where the first failed only the
+    check's residual / inliers part. lights: the fitted :class:`matcap.refine.model.LightParams` (fit units), None
+    where the rule refused the candidate before its light fit. solved_fraction: share of the object's pixels that
+    get a Lambertian normal facing the camera under the factorization's lights (None: not measured).
+    ambient_share: share of the object's irradiance that the fixed ambient gives (near: measured on the light fit's
+    pixels after the light fit; glossy: on every pixel after the per-pixel fit; None: not measured).
+    distance_radii: median lamp distance in object radii (None: infinitely far, or not near lamps). loss_ratio: the
+    near-lamp light fit's data term over that of distant lamps after as many steps (None: not measured).
+    reason: why the rule refused the candidate (one line), None where accepted. final: that refusal holds for every
+    later candidate (the photos themselves fail the check)."""
+
+    model: str
+    lights: Any = None
+    solved_fraction: float | None = None
+    ambient_share: float | None = None
+    distance_radii: float | None = None
+    loss_ratio: float | None = None
+    reason: str | None = None
+    final: bool = False
+
+    def record(self) -> dict[str, Any]:
+        """fit.json ``linear`` ``near_fit`` / ``principled_fit`` entry: what a refused later candidate found."""
+        if self.lights is None:  # refused by the check before its fit
+            return {"solved_fraction": self.solved_fraction}
+        if self.model == "near":
+            return {"ambient_share": self.ambient_share, "light_distance_radii": self.distance_radii,
+                    "loss_ratio": self.loss_ratio, "solved_fraction": self.solved_fraction}
+        return {"ambient_share": self.ambient_share, "solved_fraction": self.solved_fraction}
+
+
+RECORD_KEYS = {"near": "near_fit", "glossy": "principled_fit"}  # fit.json ``linear`` key of a later candidate
+CHECK_NAMES = {"near": "near lamps", "glossy": "principled"}  # fit.json ``linear`` ``check``: the one accepted
+
+
+def candidate_models(s: RefineSettings) -> list[str]:
+    """The estimated path's candidate light models, in the order they are tried (:class:`Candidate` ``model``):
+    distant lights, then near lamps (``candidates.near``), then glossy distant lamps (``candidates.glossy``); with
+    light model "point": point lamps, then near lamps judged on their ambient alone."""
+    if s.model.light == "point":
+        return ["point", "near"]
+    return ["distant"] + (["near"] if s.candidates.near else []) + (["glossy"] if s.candidates.glossy else [])
+
+
+@dataclass
+class _Check:
+    """The factorization and its check (:func:`_check`), shared by the candidates judged on the same part of it.
+
+    whole: all of the check (the first candidate) or all but its residual / inliers part (the later ones); idx:
+    the light fit's pixel subsample (indices into the light copy's object pixels); linear:
+    :class:`matcap.refine.linear.LinearFit` or None (fewer than 4 photos); start (H, W, 3): the photos' calibrated
+    normals under its lights, or None where the check failed before they were solved; report: fit.json ``linear``;
+    reason: why the check refuses the photos, or None; lambertian_only: only the residual / inliers part failed."""
+
+    whole: bool
+    idx: np.ndarray
+    linear: Any
+    start: np.ndarray | None
+    report: dict[str, Any]
+    reason: str | None
+    lambertian_only: bool
+
+    def s_lum(self) -> np.ndarray:
+        """(K, 3) the factorization's lights: direction times luminance irradiance."""
+        return self.linear.directions * self.linear.irradiance[:, None]
+
+
+def _check(ph: _Photos, s: RefineSettings, whole: bool) -> _Check:
+    """The light stage's start with estimated lights: the light fit's pixel subsample, the Lambertian factorization
+    of the light copy (:func:`_linear_lights`), its check (:func:`_distrust`; ``whole``: with its residual /
+    inliers part) and, where its lights pass the check's first parts, the photos' calibrated normals under them."""
+    rng = np.random.default_rng(s.seed)
+    k_count = ph.obs.shape[0]
+    _, (obs_l, mask_l, arr_l, _) = ph.light_copy(s.lights.side)
+    n_l = int(mask_l.sum())
+    idx = np.sort(rng.choice(n_l, size=min(n_l, s.lights.pixels), replace=False))
+    linear = _linear_lights(obs_l, mask_l, arr_l, s, rng, whole) if k_count >= 4 else None
+    start, report = None, {}
+    if _distrust(k_count, linear, None, s, whole) is None:  # start (and prior) normals from the photos' lights
+        start, report = _photo_normals(ph.obs, ph.mask, ph.arrays["normal"],
+                                       linear.directions * linear.irradiance[:, None])
+    reason = _distrust(k_count, linear, report.get("solved_fraction"), s, whole)
+    lambertian_only = reason is not None and whole and _distrust(k_count, linear, None, s, False) is None
+    report = {**report, "trusted": reason is None, **({"reason": reason} if reason else {}),
+              **({"lambertian_only": True} if lambertian_only else {})}
+    if linear is not None:
+        report.update(contour_pixels=linear.contour_pixels, residual=round(linear.residual, 4),
+                      inliers=round(linear.inliers, 4), spread=round(linear.spread, 5))
+    return _Check(whole, idx, linear, start, report, reason, lambertian_only)
+
+
+@dataclass
+class _LightStage:
+    """The light stage's result for one candidate (:func:`_light_stage`).
+
+    lights: :class:`matcap.refine.model.LightParams` in fit units; trusted: the maps may move (else the lights were
+    fitted to the networks' maps, which are kept); arrays: the per-pixel stage's priors ("normal" the start normals
+    where trusted); start (H, W, 3) start normals or None (the priors'); near: lamps whose distances were fitted;
+    distance: their median distance in half-widths of the frame (None: infinitely far); found: the near-lamp
+    findings for fit.json ``near_lamps`` (ambient_share, light_distance_radii, loss_ratio, solved_fraction) or
+    None; iters: light-fit steps run; bar: the candidate's progress; seconds: the stage's time."""
+
+    lights: Any
+    trusted: bool
+    arrays: dict[str, np.ndarray]
+    start: np.ndarray | None
+    near: bool
+    distance: float | None
+    found: dict[str, Any] | None
+    iters: int
+    bar: Any
+    seconds: float
+
+
+def _light_stage(torch, ph: _Photos, chk: _Check, model: str, s: RefineSettings, progress) -> _LightStage:
+    """The lights of candidate ``model`` on the light copy (:func:`_fit_lights`): from the factorization's lights
+    where the check ``chk`` passed (the subsample's maps free), else from the networks' maps (kept, fixed). Lamps
+    ("point", "near") then come in from infinitely far; for "near" the ambient share, the lamps' distance in object
+    radii and, where the rule needs it (:func:`_needs_loss_ratio`), the loss ratio against distant lamps fitted as
+    long again are measured."""
+    t0 = time.perf_counter()
+    device = torch.device(s.device)
+    torch.manual_seed(s.seed)
+    near, gate = model in ("point", "near"), model == "near"
+    bar = _Bar(progress, s, near)
+    h, w = ph.mask.shape
+    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.lights.side)
+    trusted = chk.reason is None
+    arrays, start, start_l = ph.arrays, None, None
+    if trusted and model != "near":  # the distant lamps' photo normals carry near lamps' falloff: near lamps start
+        start = chk.start  # from the networks' normals (a near-lit dome 1.50 / 1.63 degrees, against 2.29 / 2.41)
+        arrays = dict(arrays, normal=start)
+        if hw_l == (h, w):
+            arr_l, start_l = arrays, start
+        else:
+            start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], chk.s_lum(), chk.report)
+            arr_l = dict(arr_l, normal=start_l)
+    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, ph.sat_level, device, chk.idx, start_l)
+    lights = _init_lights(torch, prob, s, device, chk.linear.directions if trusted else None)
+
+    def joint(lights, iters, label):  # kept maps: the lights are fitted to them as they are
+        return _fit_lights(torch, prob, lights, s, bar, label, iters, maps_free=trusted, count=False)
+
+    iters = s.lights.iters if trusted else s.lights.kept_iters
+    compare = gate and s.model.light != "point"  # the loss ratio needs distant lamps fitted as long
+    bar.add_total(iters - s.lights.iters + (s.lights.iters if compare else 0))
+    lights, _ = joint(lights, iters, "lights")
+    found = dist = None
+    if near:  # the lamps' distances, from the distant solution
+        distant_lights = lights
+        lights, near_data = joint(_to_near(torch, lights, _centre(torch, ph.mask).to(device)), s.lights.iters,
+                                  "point lights")
+        iters += s.lights.iters
+        dist = _median_distance(lights)
+        if gate:
+            with torch.no_grad():
+                share = ambient_share(torch, lights, prob.pos, prob.ns)
+            found = {"ambient_share": round(share, 4),
+                     "light_distance_radii": None if dist is None else round(dist / _object_radius(ph.mask), 2),
+                     "loss_ratio": None, "solved_fraction": chk.report.get("solved_fraction")}
+            if compare and _needs_loss_ratio(found, s):
+                _, distant_data = joint(distant_lights.detached(), s.lights.iters, "distant lights")
+                found["loss_ratio"] = round(near_data / max(distant_data, 1e-12), 4)
+                iters += s.lights.iters
+            elif compare:
+                bar.add_total(-s.lights.iters)
+    return _LightStage(lights, trusted, arrays, start, near, dist, found, iters, bar, time.perf_counter() - t0)
+
+
+def _judge(c: Candidate, chk: _Check, earlier: list[Candidate], s: RefineSettings) -> tuple[str | None, bool]:
+    """The rule of the estimated-lights path: (why candidate ``c`` may not move the maps, None where it may; whether
+    that refusal holds for every later candidate too). A finding not measured yet (None) refuses nothing:
+    :func:`_refine_estimated` applies the rule before a candidate's fit, after its light fit and after its per-pixel
+    fit, and stops it at the first refusal.
+
+    1. The factorization's check ``chk`` (:func:`_distrust`): the first candidate must pass all of it; the later
+       ones, tried only where the first failed on residual / inliers alone, all but that part, and where they fail
+       it, every later one does.
+    2. Near lamps: :func:`_near_verdict` (their distance, the ambient share, the loss ratio).
+    3. Glossy distant lamps: the fixed ambient of their own fit and of the near-lamp fit before them at most
+       ``candidates.glossy_ambient`` of the object's irradiance, ``candidates.glossy_ambient_far`` where the
+       near-lamp fit left the lamps ``far_distance`` object radii away or more (or infinitely far)."""
+    if chk.reason is not None:
+        return chk.reason, not chk.lambertian_only
+    if c.model == "near" and c.ambient_share is not None:
+        return _near_verdict({"light_distance_radii": c.distance_radii, "ambient_share": c.ambient_share,
+                              "loss_ratio": c.loss_ratio}, s), False
+    if c.model == "glossy":
+        cs = s.candidates
+        near = next((e for e in earlier if e.model == "near" and e.ambient_share is not None), None)
+        far = near is not None and (near.distance_radii is None or near.distance_radii >= cs.far_distance)
+        limit = max(cs.glossy_ambient, cs.glossy_ambient_far) if far else cs.glossy_ambient
+        if near is not None and near.ambient_share > limit:
+            return (f"the near-lamp fit needed a fixed ambient of {near.ambient_share:.0%} of the light (distant "
+                    f"lamps tried up to {limit:.0%})"), False
+        if c.ambient_share is not None and c.ambient_share > limit:
+            return (f"the Principled fit needed a fixed ambient of {c.ambient_share:.0%} of the light (trusted up "
+                    f"to {limit:.0%}): not one light per photo"), False
+    return None, False
+
+
 def _near_verdict(found: dict, s: RefineSettings) -> str | None:
-    """Why a near-lamp fit's lamps may not move the maps (one line), or None (:class:`RefineSettings` ``near_*``).
+    """Why a near-lamp fit's lamps may not move the maps (one line), or None (:class:`CandidateSettings` ``near_*``).
     ``found``: light_distance_radii (None: infinitely far), ambient_share, loss_ratio (None: not measured, with
-    ``light_model`` "point", where only the ambient counts, or where :func:`_needs_loss_ratio` says it cannot
+    light model "point", where only the ambient counts, or where :func:`_needs_loss_ratio` says it cannot
     change the verdict)."""
     radii, share, ratio = found["light_distance_radii"], found["ambient_share"], found["loss_ratio"]
-    point = s.light_model == "point"
-    if not point and (radii is None or radii > s.near_distance):
+    cs = s.candidates
+    point = s.model.light == "point"
+    if not point and (radii is None or radii > cs.near_distance):
         return (f"the lamps came out {'infinitely far' if radii is None else f'{radii:.1f} object radii'} away "
-                f"(near from {s.near_distance:g})")
-    if share > s.near_ambient:
+                f"(near from {cs.near_distance:g})")
+    if share > cs.near_ambient:
         return (f"the near-lamp fit needed a fixed ambient of {share:.0%} of the light (trusted up to "
-                f"{s.near_ambient:.0%}): not one lamp per photo")
-    if not point and ratio is not None and ratio > s.near_loss_ratio and share > s.near_dark:
+                f"{cs.near_ambient:.0%}): not one lamp per photo")
+    if not point and ratio is not None and ratio > cs.near_loss_ratio and share > cs.near_dark:
         return (f"the lamps' distances explain little (the fit's loss {ratio:.0%} of distant lamps', trusted up to "
-                f"{s.near_loss_ratio:.0%}) under a fixed ambient of {share:.0%} (trusted whatever the loss up to "
-                f"{s.near_dark:.0%})")
+                f"{cs.near_loss_ratio:.0%}) under a fixed ambient of {share:.0%} (trusted whatever the loss up to "
+                f"{cs.near_dark:.0%})")
     return None
 
 
 def _needs_loss_ratio(found: dict, s: RefineSettings) -> bool:
-    """Whether :func:`_near_verdict` turns on the loss ratio for these findings (it costs ``light_iters`` more
+    """Whether :func:`_near_verdict` turns on the loss ratio for these findings (it costs ``lights.iters`` more
     joint steps): only for lamps near enough, under an ambient neither too strong nor a dark room's."""
-    radii, share = found["light_distance_radii"], found["ambient_share"]
-    return radii is not None and radii <= s.near_distance and s.near_dark < share <= s.near_ambient
-
-
-def _looks(tried: dict, but: str | None = None) -> dict:
-    """fit.json ``linear`` keys of the second looks that were tried (``near_fit``, ``principled_fit``)."""
-    return {("near_fit" if k == "near" else "principled_fit"): v for k, v in tried.items() if k != but}
+    radii, share, cs = found["light_distance_radii"], found["ambient_share"], s.candidates
+    return radii is not None and radii <= cs.near_distance and cs.near_dark < share <= cs.near_ambient
 
 
 def _object_radius(mask: np.ndarray) -> float:
@@ -862,127 +1107,118 @@ def _object_radius(mask: np.ndarray) -> float:
     return max(math.sqrt(float(np.count_nonzero(mask)) / math.pi) * 2.0 / mask.shape[1], 1e-6)
 
 
-def _refine(torch, images, maps, s: RefineSettings, progress, lambertian: bool = True, near: bool = False,
-            gate: bool = False) -> RefineResult | dict:
-    """One fit; ``lambertian`` False leaves the residual / inliers part of the check out (:func:`refine`) and
-    returns only the check's report (a dict) where the rest of it fails; ``near``: near lights (the distant
-    ones, then their distances); ``gate``: the near-lamp check (:func:`_near_verdict`) decides after the light
-    fit, before the per-pixel one; where it fails, only its report (a dict with ``reason`` and ``near``)."""
-    if s.light_model not in ("directional", "point"):
-        raise MatcapError(f"light model must be 'directional' or 'point', got {s.light_model!r}")
+def _refine_estimated(torch, images, maps: MaterialMaps, s: RefineSettings, progress) -> RefineResult:
+    """The fit with estimated lights. Stages: (1) the photos (:func:`_prepare`); (2) lights: the candidate light
+    models of :func:`candidate_models` in order, each fitted (:func:`_check`, :func:`_light_stage`) as far as the
+    rule :func:`_judge` lets it; (3) the first accepted candidate's per-pixel solve and (4) outputs
+    (:func:`_finish`; a glossy candidate is judged on its ambient share after them). Where none is accepted, the
+    networks' maps are kept, the first candidate's lights fitted to them, with every reason once.
+
+    The result's ``candidates``: every candidate judged, in order."""
+    if s.model.light not in ("directional", "point"):
+        raise MatcapError(f"light model must be 'directional' or 'point', got {s.model.light!r}")
     t_start = time.perf_counter()
     ph = _prepare(images, maps, s)
-    mask, obs, scale, sat_level, arrays, weight = ph.mask, ph.obs, ph.scale, ph.sat_level, ph.arrays, ph.weight
-    device = torch.device(s.device)
-    torch.manual_seed(s.seed)
-    rng = np.random.default_rng(s.seed)
-    k_count, h, w = obs.shape[:3]
+    checks: dict[bool, _Check] = {}
+    tried: list[Candidate] = []
+    for model in candidate_models(s):
+        whole = not tried
+        chk = checks[whole] = checks.get(whole) or _check(ph, s, whole)
+        c = Candidate(model, solved_fraction=chk.report.get("solved_fraction"))
+        tried.append(c)
+        c.reason, c.final = _judge(c, chk, tried[:-1], s)
+        if c.reason is None:
+            stage = _light_stage(torch, ph, chk, model, s, progress)
+            c.lights = stage.lights
+            if stage.found is not None:
+                c.ambient_share, c.distance_radii, c.loss_ratio = (
+                    stage.found[k] for k in ("ambient_share", "light_distance_radii", "loss_ratio"))
+            c.reason, c.final = _judge(c, chk, tried[:-1], s)
+            if c.reason is not None:
+                stage.bar.close()
+            else:
+                result = _finish(torch, ph, maps, chk, stage, s, t_start)
+                if model == "glossy":
+                    c.ambient_share = result.report["ambient_share"]
+                    c.reason, c.final = _judge(c, chk, tried[:-1], s)
+                if c.reason is None:
+                    return _accepted(result, tried)
+        if c.final:
+            break
+    kept = _finish(torch, ph, maps, checks[True], _light_stage(torch, ph, checks[True], tried[0].model, s, progress),
+                   s, t_start)
+    return _kept(kept, tried)
 
-    bar = _Bar(progress, s, near)
-    timings: dict[str, float] = {}
 
-    # ---- 1. lights on a downsampled subsample, jointly with those pixels' maps
+def _accepted(result: RefineResult, tried: list[Candidate]) -> RefineResult:
+    """``result``, the fit of the accepted candidate ``tried[-1]``, with the candidates before it in fit.json
+    ``linear`` (``check``, ``reason_lambertian``, what the refused later ones found, ``reason_near``)."""
+    c, first, refused = tried[-1], tried[0], tried[1:-1]
+    if c is not first:
+        lin = result.report["linear"]
+        near = [e.reason for e in refused if e.model == "near"]
+        result.report["linear"] = {**lin, "check": CHECK_NAMES[c.model], "reason_lambertian": first.reason,
+                                   **_records(refused), **({"reason_near": near[-1]} if near else {})}
+    result.candidates = tried
+    return result
+
+
+def _kept(result: RefineResult, tried: list[Candidate]) -> RefineResult:
+    """``result``, the networks' maps kept under the first candidate's lights, with every refused later
+    candidate's reason once in fit.json ``linear`` ``reason`` and what they found."""
+    later = tried[1:]
+    if later:
+        lin = result.report["linear"]
+        extra = [r for r in dict.fromkeys(e.reason for e in later) if r and r not in lin["reason"]]
+        result.report["linear"] = {**lin, **({"reason": f"{lin['reason']}; without that part of the check: "
+                                                         + "; ".join(extra)} if extra else {}), **_records(later)}
+    result.candidates = tried
+    return result
+
+
+def _records(later: list[Candidate]) -> dict[str, Any]:
+    """fit.json ``linear`` entries of refused later candidates that had findings of their own: a fit, or the
+    check's solved fraction (not those refused on an earlier candidate's findings before any fit)."""
+    return {RECORD_KEYS[e.model]: e.record() for e in later if e.lights is not None or e.final}
+
+
+def _finish(torch, ph: _Photos, maps: MaterialMaps, chk: _Check, stage: _LightStage, s: RefineSettings,
+            t_start: float) -> RefineResult:
+    """The per-pixel stage (:func:`_solve_maps`; none where the maps are kept) and the outputs (:func:`_outputs`)
+    under the lights of ``stage``, and fit.json; ``t_start``: the fit's start (``timings`` ``total_s``)."""
+    mask, scale = ph.mask, ph.scale
+    timings: dict[str, float] = {"lights_s": stage.seconds}
     t0 = time.perf_counter()
-    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.light_side)
-    n_l = int(mask_l.sum())
-    idx = np.sort(rng.choice(n_l, size=min(n_l, s.light_pixels), replace=False))
-    start = start_l = None
-    linear = None
-    linear_report = {}  # the factorization (distant lights; near ones start from its solution)
-    if k_count >= 4:
-        linear = _linear_lights(obs_l, mask_l, arr_l, s, rng, lambertian)
-    if _distrust(k_count, linear, None, s, lambertian) is None:  # start (and prior) normals from the photos' lights
-        s_lum = linear.directions * linear.irradiance[:, None]
-        start, linear_report = _photo_normals(obs, mask, arrays["normal"], s_lum)
-    reason = _distrust(k_count, linear, linear_report.get("solved_fraction"), s, lambertian)
-    linear_report = {**linear_report, "trusted": reason is None, **({"reason": reason} if reason else {})}
-    if reason is not None and lambertian and _distrust(k_count, linear, None, s, False) is None:
-        linear_report["lambertian_only"] = True  # only residual / inliers failed: see trust_ambient
-    trusted = linear_report["trusted"]
-    if not lambertian and not trusted:  # the Principled fit was not even started: refine() keeps the first pass
-        return linear_report
-    if not trusted:
-        start = None
-    if near and not lambertian:  # the distant lamps' photo normals carry the near lamps' falloff: the network's
-        start = None  # are the start and the prior (a near-lit dome 1.50 / 1.63 degrees, against 2.29 / 2.41)
-    elif linear is not None and trusted:
-        arrays = dict(arrays, normal=start)
-        if hw_l == (h, w):
-            arr_l, start_l = arrays, start
-        else:
-            start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, linear_report)
-            arr_l = dict(arr_l, normal=start_l)
-    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
-    lights = _init_lights(torch, prob, s, device, linear.directions if linear is not None and trusted else None)
-
-    def joint(lights, iters, label):  # kept maps: the lights are fitted to them as they are
-        return _fit_lights(torch, prob, lights, s, bar, label, iters, maps_free=trusted, count=False)
-
-    light_iters = s.light_iters if trusted else s.kept_light_iters
-    compare = near and gate and s.light_model != "point"  # the near-lamp check's loss ratio needs the distant run
-    bar.add_total(light_iters - s.light_iters + (s.light_iters if compare else 0))
-    lights, _ = joint(lights, light_iters, "lights")
-    near_found = dist = None
-    if near:  # the lamps' distances, from the distant solution
-        distant_lights = lights
-        lights, near_data = joint(_to_near(torch, lights, _centre(torch, mask).to(device)), s.light_iters,
-                                  "point lights")
-        dist = _median_distance(lights)
-        if gate:
-            with torch.no_grad():
-                share_l = ambient_share(torch, lights, prob.pos, prob.ns)
-            near_found = {"ambient_share": round(share_l, 4),
-                          "light_distance_radii": None if dist is None else round(dist / _object_radius(mask), 2),
-                          "loss_ratio": None, "solved_fraction": (linear_report or {}).get("solved_fraction")}
-            if compare and _needs_loss_ratio(near_found, s):  # as many more steps with the lamps kept distant:
-                _, distant_data = joint(distant_lights.detached(), s.light_iters, "distant lights")  # their gain
-                near_found["loss_ratio"] = round(near_data / max(distant_data, 1e-12), 4)
-            elif compare:
-                bar.add_total(-s.light_iters)
-            why = _near_verdict(near_found, s)
-            if why is not None:
-                bar.close()
-                return {**(linear_report or {}), "reason": why, "near": near_found}
-    timings["lights_s"] = time.perf_counter() - t0
-
-    # ---- 2. per pixel, lights fixed: half size, then full size
-    t0 = time.perf_counter()
-    coarse_iters, fine_iters = (s.coarse_iters, s.fine_iters) if trusted else (0, 0)
-    full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
-                                            coarse_iters, fine_iters)
+    coarse_iters, fine_iters = (s.pixels.coarse_iters, s.pixels.fine_iters) if stage.trusted else (0, 0)
+    full, px_full, iters_done = _solve_maps(torch, ph.obs, mask, stage.arrays, ph.weight, ph.sat_level,
+                                            stage.start, stage.lights, s, stage.bar, coarse_iters, fine_iters)
     timings["maps_s"] = time.perf_counter() - t0
-    bar.close()
-
-    # ---- 3. outputs
+    stage.bar.close()
     t0 = time.perf_counter()
-    out = _outputs(torch, full, px_full, lights, s, scale, maps, keep=not trusted)
+    out = _outputs(torch, full, px_full, stage.lights, s, scale, maps, keep=not stage.trusted)
     timings["outputs_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
-    refined, residual, psnr, prediction, share = out.maps, out.residual, out.psnr, out.prediction, out.ambient_share
-    light_entries = lights_to_entries(lights, scale)
-    ratio_run = (near_found or {}).get("loss_ratio") is not None  # the distant lamps ran as long again
     report = {
-        "psnr_db": [round(p, 3) for p in psnr],
-        "psnr_db_mean": round(float(np.mean(psnr)), 3),
-        "residual_mean": round(float(np.nanmean(residual)), 5),
-        "iterations": {"lights": light_iters + (s.light_iters * (2 if ratio_run else 1) if near else 0), **iters_done},
+        "psnr_db": [round(p, 3) for p in out.psnr],
+        "psnr_db_mean": round(float(np.mean(out.psnr)), 3),
+        "residual_mean": round(float(np.nanmean(out.residual)), 5),
+        "iterations": {"lights": stage.iters, **iters_done},
         "pixels": int(mask.sum()),
-        "images": k_count,
+        "images": ph.obs.shape[0],
         "normal_change_deg_mean": round(out.normal_change_deg, 3),
-        "light_variation": {"threshold": s.variation_threshold, "weak_fraction": round(ph.weak_fraction, 4),
+        "light_variation": {"threshold": s.loss.variation_threshold, "weak_fraction": round(ph.weak_fraction, 4),
                             "warning": ph.warning},
         "photo_scale": scale,
-        "linear": None if linear_report is None else {**linear_report, **({} if linear is None else {
-            "contour_pixels": linear.contour_pixels, "residual": round(linear.residual, 4),
-            "inliers": round(linear.inliers, 4), "spread": round(linear.spread, 5)})},
-        "kept_network_maps": not trusted,
-        "ambient_share": round(share, 4),
-        **({"light_distance_median": dist} if near else {}),
-        **({"near_lamps": near_found} if near_found is not None else {}),
+        "linear": dict(chk.report),
+        "kept_network_maps": not stage.trusted,
+        "ambient_share": round(out.ambient_share, 4),
+        **({"light_distance_median": stage.distance} if stage.near else {}),
+        **({"near_lamps": stage.found} if stage.found is not None else {}),
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
-    return RefineResult(refined, light_entries, report, residual, ph.variation, ph.warning, prediction)
+    return RefineResult(out.maps, lights_to_entries(stage.lights, scale), report, out.residual, ph.variation,
+                        ph.warning, out.prediction)
 
 
 def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: RefineSettings, bar,
@@ -999,7 +1235,7 @@ def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: R
 
     device = torch.device(s.device)
     h, w = mask.shape
-    c = s.cauchy
+    c = s.loss.cauchy
     full = _Problem(torch, obs, mask, arrays, weight, sat_level, device, start=start)
     px_full = PixelParams.from_maps(full.ns, full.b0, full.r0, full.m0)
     iters_done = {"coarse": 0, "fine": 0}
@@ -1054,8 +1290,8 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
     with torch.no_grad():
         n_img[full.rows, full.cols] = px.normal().cpu().numpy()
         base[full.rows, full.cols] = px.base().cpu().numpy()
-        rough[full.rows, full.cols] = (px.rough() if s.fit_brdf else full.r0).cpu().numpy()
-        metal[full.rows, full.cols] = (px.metal() if s.fit_brdf else full.m0).cpu().numpy()
+        rough[full.rows, full.cols] = (px.rough() if s.model.fit_brdf else full.r0).cpu().numpy()
+        metal[full.rows, full.cols] = (px.metal() if s.model.fit_brdf else full.m0).cpu().numpy()
     obs_px = full.obs.cpu().numpy()
     err = pred - obs_px
     err = np.where(full.sat.cpu().numpy() & (err > 0), 0.0, err)  # a clipped pixel only bounds the light from below
@@ -1076,8 +1312,8 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
         base, rough, metal = (np.asarray(v, np.float32).copy() for v in (kept.base_color, kept.roughness,
                                                                         kept.metallic))
     refined = MaterialMaps(normal=n_img, mask=mask, base_color=base,
-                           roughness=rough if (maps.roughness is not None or s.fit_brdf) else None,
-                           metallic=metal if (maps.metallic is not None or s.fit_brdf) else None,
+                           roughness=rough if (maps.roughness is not None or s.model.fit_brdf) else None,
+                           metallic=metal if (maps.metallic is not None or s.model.fit_brdf) else None,
                            height=None, meta=dict(maps.meta))
     network = _maps_arrays(maps)["normal"]
     change = np.degrees(np.arccos(np.clip((n_img[mask] * network[mask]).sum(-1), -1, 1)))
@@ -1146,7 +1382,7 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
     lights = lights.detached()
     out = [t.detach().clone() for t in px0.tensors()]
     n = len(prob)
-    step = max(256, s.lm_observations // prob.obs.shape[0])
+    step = max(256, s.pixels.lm_observations // prob.obs.shape[0])
     chunks = [slice(i, min(i + step, n)) for i in range(0, n, step)]
     bar.add_total(iters * len(chunks))
     losses = queue.SimpleQueue()
@@ -1194,10 +1430,10 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
 
     grad, base_logit, rough_logit, metal_logit = start
     n = len(part)
-    brdf = s.fit_brdf  # without it roughness and metallic stay the network's: 5 parameters
+    brdf = s.model.fit_brdf  # without it roughness and metallic stay the network's: 5 parameters
     theta = torch.cat([grad, base_logit] + ([rough_logit[:, None], metal_logit[:, None]] if brdf else []), 1)
-    roots = [math.sqrt(s.prior_normal), math.sqrt(s.prior_base / 3.0), math.sqrt(s.prior_rough),
-             math.sqrt(s.prior_metal)]
+    roots = [math.sqrt(s.priors.normal), math.sqrt(s.priors.base / 3.0), math.sqrt(s.priors.rough),
+             math.sqrt(s.priors.metal)]
 
     taken = [None, part]  # the rows last taken and their problem: the Jacobian and the trial step share them
 
@@ -1258,7 +1494,7 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
 
     dev = theta.device
     channel = torch.arange(3, device=dev)
-    theta = levenberg_marquardt(residuals, theta, part.weight / 3.0, c, iters, on_step=on_step, tol=s.pixel_tol,
+    theta = levenberg_marquardt(residuals, theta, part.weight / 3.0, c, iters, on_step=on_step, tol=s.pixels.tol,
                                 jacobian=jacobian)
     out = [theta[:, 0:2], theta[:, 2:5]]
     out += [theta[:, 5], theta[:, 6]] if brdf else [rough_logit, metal_logit]
@@ -1268,11 +1504,11 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
 def _predict(torch, prob: _Problem, px, lights, s) -> np.ndarray:
     outs = []
     with torch.no_grad():
-        for i in range(0, len(prob), s.chunk):
-            sl = slice(i, i + s.chunk)
+        for i in range(0, len(prob), s.pixels.chunk):
+            sl = slice(i, i + s.pixels.chunk)
             part = prob.part(sl)
-            r = px.rough()[sl] if s.fit_brdf else part.r0
-            m = px.metal()[sl] if s.fit_brdf else part.m0
+            r = px.rough()[sl] if s.model.fit_brdf else part.r0
+            m = px.metal()[sl] if s.model.fit_brdf else part.m0
             outs.append(_shade(lights, part.pos, px.normal()[sl], px.base()[sl], r, m).cpu().numpy())
     return np.concatenate(outs, axis=1)
 
@@ -1309,7 +1545,7 @@ class _Bar:
         self.cb = progress if callable(progress) else None
         self.show = progress is True
         self.done = 0
-        self.total = s.light_iters * (2 if near else 1) if total is None else total
+        self.total = s.lights.iters * (2 if near else 1) if total is None else total
         self.stage = None
         self.bar = None
         self.loss = float("nan")
@@ -1361,17 +1597,17 @@ def fit_light_only(image: np.ndarray, maps: MaterialMaps, settings: RefineSettin
 
     px = PixelParams.from_maps(full.ns, full.b0, full.r0, full.m0)
     rng = np.random.default_rng(s.seed)
-    idx = np.sort(rng.choice(len(full), size=min(len(full), 4 * s.light_pixels), replace=False))
+    idx = np.sort(rng.choice(len(full), size=min(len(full), 4 * s.lights.pixels), replace=False))
     sub = full.part(idx)
     px_sub = PixelParams(*(t[torch.from_numpy(idx)] for t in px.tensors()))
     lights = _init_lights(torch, sub, s, device)
-    params = [lights.vec, lights.log_intensity] + ([lights.sh] if s.ambient != "none" else [])
+    params = [lights.vec, lights.log_intensity] + ([lights.sh] if s.model.ambient != "none" else [])
     for t in params:
         t.requires_grad_(True)
-    opt = torch.optim.Adam(params, lr=s.lr_light)
-    for _ in range(s.light_iters):
+    opt = torch.optim.Adam(params, lr=s.lights.lr)
+    for _ in range(s.lights.iters):
         opt.zero_grad()
-        per, _ = _loss(torch, sub, px_sub, lights, s, s.cauchy, s.fit_brdf)
+        per, _ = _loss(torch, sub, px_sub, lights, s, s.loss.cauchy, s.model.fit_brdf)
         per.mean().backward()
         opt.step()
     lights = lights.detached()

@@ -10,7 +10,7 @@ while the network's normals are 6-31 degrees off, mostly in local detail (the be
 So the photos decide everything but ``A``. :func:`factorize` takes ``A`` (nine numbers for the whole capture) from
 prior knowledge, by linear least squares of ``A b_p`` against ``|b_p| n_p``; :func:`integrable_ambiguity` then
 takes six of the nine from the photos again (their normals must form one surface), leaving the prior only the
-three numbers of a bas-relief (the refinement's default, ``RefineSettings.ambiguity``). The priors:
+three numbers of a bas-relief (chosen as ``RefineSettings.factorization`` says). The priors:
 
 - the network's normals ``n_p`` on the object, and
 - the occluding contour: on the mask's edge, where the network agrees the surface turns away (``n_z`` below
