@@ -42,9 +42,10 @@ class FlatCheck:
 #: check_flat's rule: the sample fills at least this share of the frame ...
 FLAT_COVERAGE = 0.5
 #: ... its mean normal is within this many degrees of the camera axis ...
-FLAT_MEAN_TILT = 10.0
-#: ... and 90 % of its normals within this many.
-FLAT_P90_TILT = 30.0
+FLAT_MEAN_TILT = 15.0
+#: ... and 90 % of its normals within this many (the networks take a near lamp's falloff over a swatch for a bend of
+#: up to about 45 degrees; an object's silhouette turns its normals to 90).
+FLAT_P90_TILT = 50.0
 
 
 def check_flat(normal: np.ndarray, mask: np.ndarray) -> FlatCheck:
@@ -111,9 +112,12 @@ class PlaneLamps:
         return self.distance / self.width
 
 
-def _luminance(images) -> np.ndarray:
+def _dominant_channel(images) -> np.ndarray:
+    """(K, H, W) each pixel's brightest colour channel (over the photos' mean): the channel where the surface's own
+    colour is strongest, so a white highlight weighs least against its diffuse light."""
     stack = np.stack([np.asarray(im, np.float32) for im in images])
-    return stack @ np.asarray(LUMA, np.float32)
+    pick = stack.mean(0).argmax(-1)
+    return np.take_along_axis(stack, pick[None, ..., None], -1)[..., 0]
 
 
 def _small(lum: np.ndarray, mask: np.ndarray, side: int):
@@ -250,7 +254,7 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
     k_count = len(images)
     if k_count < 3:
         raise MatcapError(f"finding the lamps of a flat sample needs at least 3 photos, got {k_count}")
-    lum = _luminance(images)
+    lum = _dominant_channel(images)
     if lum.shape[1:] != mask.shape:
         raise MatcapError(f"the mask is {mask.shape[1]}x{mask.shape[0]} but the photos {lum.shape[2]}x{lum.shape[1]}")
     h, w = mask.shape
