@@ -87,7 +87,7 @@ class PlaneLamps:
     unit vectors from ``centre`` toward each lamp; distance: (K,) distances from ``centre``, world units;
     intensity: (K,) relative luminance irradiance at ``centre`` on a surface facing the lamp (mean 1); centre:
     (3,) the mask's centroid on the plane; width: the sample's width (world units: the longer side of the mask's
-    bounding box); residual: RMS relative residual of the near-light photometric stereo (0.01: 1 %);
+    bounding box); residual: median absolute relative residual of the near-light photometric stereo (0.01: 1 %);
     residual_distant: the same with every lamp taken as distant (a directional light): where it is not larger,
     the falloff did not place the lamps (:attr:`near`)."""
 
@@ -180,7 +180,8 @@ def _varpro(torch, lamp, vectors, y_np, w_np, cauchy: float, steps: int):
     albedo times normal ``b`` (3,) solved by weighted least squares for them at each evaluation (variable
     projection): photo k at pixel x is ``b(x) . (I_k (p_k - x) / |p_k - x|^3 + A_k z)``. ``vectors(lamp)`` gives
     (p_k - x (K, P, 3), |p_k - x|^2 (K, P)); y_np / w_np (K, P) log luminance and its weights; relative residuals
-    under a Cauchy loss of scale ``cauchy``. Returns (lamps, RMS relative residual, b (P, 3) for them)."""
+    under a Cauchy loss of scale ``cauchy``. Returns (lamps, median absolute relative residual (highlights and
+    shadows, which no lamp explains, do not move it), b (P, 3) for them)."""
     k_count = lamp.shape[0]
     y_lin = torch.from_numpy(np.exp(y_np))
     w_obs = torch.from_numpy(w_np)
@@ -223,8 +224,8 @@ def _varpro(torch, lamp, vectors, y_np, w_np, cauchy: float, steps: int):
             lam *= 4.0
         if lam >= 1e9 or cost - float(new @ new) < 1e-6 * cost:  # no step left that lowers the loss noticeably
             break
-    e = residual(theta, w_obs)
-    return theta.reshape(k_count, 5), float(torch.sqrt((e * e).sum() / w_obs.sum().clamp(min=1))), solve_b(theta)
+    e = (residual(theta, w_obs) / w_obs.reshape(-1).sqrt().clamp(min=1e-9))[w_obs.reshape(-1) > 0]
+    return theta.reshape(k_count, 5), float(e.abs().median()), solve_b(theta)
 
 
 def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, cauchy: float = 0.05,
