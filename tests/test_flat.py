@@ -138,3 +138,14 @@ def test_flat_with_too_few_photos_is_one_line(tmp_path):
     r = subprocess.run([sys.executable, "-m", "matcap", "capture", str(photos), "--flat", "--no-refine", "--out",
                         str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "--no-refine" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+
+
+def test_flat_sample_under_distant_lamps_keeps_the_networks_maps():
+    from matcap.refine import RefineSettings, refine
+
+    n, albedo = _swatch()
+    lamps = _lamps(10, (1.0, 3.0))
+    start = _maps(np.dstack([np.zeros_like(n[..., :2]), np.ones_like(n[..., :1])]), np.full_like(albedo, 0.5), 0.5)
+    result = refine(_photos(n, albedo, lamps, distant=True), start, RefineSettings(), flat=True)
+    assert result.report["flat"]["lamps"] == "distant" and result.report["kept_network_maps"]
+    assert np.array_equal(result.maps.normal, start.normal)

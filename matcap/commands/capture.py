@@ -188,13 +188,9 @@ def run(args) -> int:
     flat = maps.meta.get("flat") or {}
     lamps = (maps.meta.get("refine") or {}).get("flat_lamps")
     if flat.get("chosen_by") == "detection" and flat.get("flat"):
-        print(f"note: taken as a flat sample ({flat['why']}): fitted as a plane"
-              + (" under lamps found from their falloff" if lamps == "near" else "")
+        print(f"note: taken as a flat sample ({flat['why']})"
+              + ("; fitted as a plane under lamps found from their falloff" if lamps == "near" else "")
               + "; --no-flat takes it as an object", file=sys.stderr)
-    if lamps == "distant":
-        print("note: the lamps were far from the flat sample: their light falls off too little over it to place "
-              "them, so they were estimated as for an object. Give them with --lights FILE or put a mirror ball "
-              "in the photos (--ball auto) for a well-posed fit", file=sys.stderr)
     t = maps.meta["timings"]
     print(f"wrote {out}/ ({maps.shape[1]}x{maps.shape[0]}, {len(maps.meta['images_used'])} images, "
           f"{'normal + BRDF' if maps.has_brdf else 'normal'} maps, {t['total_s']:.1f} s"

@@ -657,7 +657,8 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     ``settings.seed`` on one device. ``progress``: see :class:`_Bar`.
     ``flat``: the photos show a flat sample facing the camera: without ``lights``, its lamps are found from the
     falloff of their light over the plane (:func:`matcap.refine.flat.flat_lights`) and held like known ones; where
-    the falloff does not place them (distant lamps), they are estimated as an object's.
+    the falloff does not place them (distant lamps), the networks' maps are kept (the photos of a plane under
+    distant lights cannot tell the lights apart) and the lights fitted to them.
     """
     import torch
 
@@ -669,8 +670,9 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
             from matcap.refine.flat import flat_lights
 
             lights, found = flat_lights(images, maps.mask)
-            if lights is None:  # distant lamps: estimated as an object's are, what the falloff said recorded
-                result = refine(images, maps, s, progress)
+            if lights is None:  # distant lamps: a plane's photos are nearly rank 1 and cannot tell them apart, so
+                # the networks' maps are kept (the lights fitted to them), what the falloff said recorded
+                result = refine(images, maps, s.replace({"checks.spread": 1.0}), progress)
                 result.report["flat"] = found
                 return result
             return _refine_known(torch, images, maps, s, progress, lights, flat=found)
