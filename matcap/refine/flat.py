@@ -19,8 +19,6 @@ import numpy as np
 
 from matcap.errors import MatcapError
 
-LUMA = (0.2126, 0.7152, 0.0722)
-
 
 @dataclass
 class FlatCheck:
@@ -290,8 +288,11 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
         direct = t[3] + torch.log(q[:, 2]) - 1.5 * torch.log((q * q).sum(-1))
         return alpha + torch.logaddexp(direct, t[4].expand_as(direct))
 
+    def plane_model(theta):  # (K, 5) -> (K, P)
+        return torch.func.vmap(plane_fn, in_dims=(0, 0))(theta, torch.arange(k_count))
+
     def per_photo_loss(theta):
-        e = y - torch.func.vmap(plane_fn, in_dims=(0, 0))(theta, torch.arange(k_count))
+        e = y - plane_model(theta)
         return (w_obs * torch.log1p((e / cauchy) ** 2)).sum(1) / w_obs.sum(1).clamp(min=1.0)
 
     tried = []
@@ -303,10 +304,10 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
         for it in range(4):
             if it == 0:  # start: intensities at the mean level, a room light 5 log units fainter
                 theta[:, 4] = -60.0
-                theta[:, 3] = ((y - plane_fn_batch(plane_fn, theta, k_count)) * w_obs).sum(1) / w_obs.sum(1)
+                theta[:, 3] = ((y - plane_model(theta)) * w_obs).sum(1) / w_obs.sum(1)
                 theta[:, 4] = theta[:, 3] - 3.0 * torch.log(torch.tensor(dist)) - 5.0
             theta = _lamp_lm(torch, theta, plane_fn, y, w_obs, cauchy, steps)
-            model = plane_fn_batch(plane_fn, theta, k_count) - alpha
+            model = plane_model(theta) - alpha
             alpha = ((y - model) * w_obs).sum(0) / w_obs.sum(0).clamp(min=1e-9)
         tried.append((theta, per_photo_loss(theta), alpha))
     losses = torch.stack([lo for _, lo, _ in tried])
@@ -326,11 +327,6 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
     return PlaneLamps(positions.numpy(), (rel / dist[:, None]).numpy(), dist.numpy(), irr.numpy(), centre.numpy(),
                       width, resid, resid_distant)
 
-
-def plane_fn_batch(fn, theta, k_count):
-    import torch
-
-    return torch.func.vmap(fn, in_dims=(0, 0))(theta, torch.arange(k_count))
 
 
 #: The falloff placed the lamps where their distances cut the residual of distant lamps to at most this share of it
