@@ -541,9 +541,13 @@ def _photo_normals(obs, mask, network, s_lum, report=None, positions=None, chunk
     rows, cols = np.nonzero(mask)
     start = network.copy()
     solved_count = 0
+    if positions is not None:  # near lamps: every pixel's own light vectors, irradiance referred to the centroid
+        import torch
+
+        centre = _centre(torch, mask).double().numpy()
     for a in range(0, len(rows), chunk):
         r, c = rows[a:a + chunk], cols[a:a + chunk]
-        lights = s_lum if positions is None else _near_vectors(s_lum, positions, mask, r, c)
+        lights = s_lum if positions is None else _near_vectors(s_lum, positions, centre, mask.shape, r, c)
         n, _, solved = solve_normals(_luminance(obs, r, c), lights, network[r, c])
         start[r, c] = n
         solved_count += int(solved.sum())
@@ -552,16 +556,15 @@ def _photo_normals(obs, mask, network, s_lum, report=None, positions=None, chunk
     return start, report
 
 
-def _near_vectors(s_lum: np.ndarray, positions: np.ndarray, mask: np.ndarray, rows, cols) -> np.ndarray:
-    """(K, P, 3) per-pixel light vectors of lamps at ``positions`` (K, 3) whose irradiance times direction at the
-    mask's centroid is ``s_lum`` (K, 3), at the pixels (rows, cols) of a ``mask``-sized image."""
+def _near_vectors(s_lum: np.ndarray, positions: np.ndarray, centre: np.ndarray, hw: tuple[int, int], rows,
+                  cols) -> np.ndarray:
+    """(K, P, 3) per-pixel light vectors of lamps at ``positions`` (K, 3) whose irradiance times direction at
+    ``centre`` (3,) is ``s_lum`` (K, 3), at the pixels (rows, cols) of an ``hw`` image (framing plane units)."""
     import torch
 
     from matcap.refine.model import plane_positions
 
-    h, w = mask.shape
-    pos = plane_positions(torch.from_numpy(np.asarray(rows)), torch.from_numpy(np.asarray(cols)), h, w).double().numpy()
-    centre = _centre(torch, mask).double().numpy()
+    pos = plane_positions(torch.from_numpy(np.asarray(rows)), torch.from_numpy(np.asarray(cols)), *hw).double().numpy()
     p = np.asarray(positions, np.float64)
     q = p[:, None, :] - pos[None]
     r2 = (q * q).sum(-1, keepdims=True)
