@@ -12,7 +12,9 @@ type stubs, C++ headers and ~100 plugins; this keeps
   both splits, plus the scene-file defaults around them), and the shared libraries every variant links;
 
 drops the rest and the debug symbols (``strip --strip-unneeded``), and packs what is left into one
-``mitsuba-<ver>-drjit-<ver>-<tag>.tar.xz`` in ``--out`` (an ignored folder: ``/carry/`` is in .gitignore). On the
+``mitsuba-<ver>-drjit-<ver>-<tag>.tar.xz`` in ``--out`` (an ignored folder: ``/carry/`` is in .gitignore). Beside
+it, ``carry/wheels`` gets the wheels of the product's dependencies that the machine's image lacks (OpenEXR,
+trimesh, colour-science: 11.6 MB), which docs/recipes/gpu_train.py installs there. On the
 machine, ``tar -xJf carry/mitsuba/*.tar.xz -C /tmp/matcap_site`` and ``PYTHONPATH=/tmp/matcap_site`` make
 ``import mitsuba`` work (docs/recipes/gpu_train.py does this itself). ``--verify`` unpacks the archive into a temporary
 folder and, in a child process that sees only that copy, imports it, renders a test scene in ``scalar_rgb`` and
@@ -72,6 +74,24 @@ def download(dest: Path, python: str) -> list[Path]:
     log("downloading " + " ".join(cmd[3:]))
     subprocess.run(cmd, check=True)
     return sorted(dest.glob(f"*-{tag}-*.whl"))
+
+
+#: The product's dependencies that the lent machine's image lacks (it has numpy, scipy, opencv, pillow, safetensors,
+#: tqdm and torch): carried as wheels in ``carry/wheels`` and installed there by docs/recipes/gpu_train.py.
+DEPENDENCIES = ("OpenEXR", "trimesh", "colour-science")
+
+
+def download_dependencies(dest: Path, python: str) -> list[Path]:
+    """The wheels of :data:`DEPENDENCIES` for CPython ``python`` on manylinux x86-64, into ``dest``."""
+    dest.mkdir(parents=True, exist_ok=True)
+    for old in dest.glob("*.whl"):
+        old.unlink()
+    cmd = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:", "--python-version",
+           python, "--implementation", "cp", "--platform", "manylinux_2_28_x86_64", "--platform",
+           "manylinux_2_17_x86_64", "--platform", "manylinux2014_x86_64", "-d", str(dest), *DEPENDENCIES]
+    log("downloading " + " ".join(DEPENDENCIES))
+    subprocess.run(cmd, check=True)
+    return sorted(dest.glob("*.whl"))
 
 
 def strip_tree(root: Path, variants=VARIANTS, plugins=PLUGINS, strip_symbols: bool = True) -> dict:
@@ -205,6 +225,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=str(REPO / "carry" / "mitsuba"), help="folder for the archive (default carry/mitsuba)")
     ap.add_argument("--python", default="3.12", help="CPython version of the machine (default 3.12, the lent one's)")
     ap.add_argument("--wheels", default="/tmp/matcap_mitsuba_wheels", help="wheel cache (default %(default)s)")
+    ap.add_argument("--deps-out", default=None,
+                    help="folder for the dependency wheels (default: wheels/ beside --out, i.e. carry/wheels)")
     ap.add_argument("--no-strip-symbols", action="store_true", help="keep the debug symbols")
     ap.add_argument("--verify", action="store_true", help="render with the packed copy here (needs --python = this one)")
     ap.add_argument("--assets", default=None, help="assets folder for --verify's synth scenes (e.g. ../shared/data)")
@@ -223,6 +245,9 @@ def main(argv: list[str] | None = None) -> int:
         sys.path.insert(0, str(REPO))
         verify(archive, args.assets)
     print(f"{archive} {archive.stat().st_size / 1e6:.1f} MB")
+    deps_out = Path(args.deps_out) if args.deps_out else out.parent / "wheels"
+    deps = download_dependencies(deps_out, args.python)
+    print(f"{deps_out}: {', '.join(d.name for d in deps)} {sum(d.stat().st_size for d in deps) / 1e6:.1f} MB")
     return 0
 
 

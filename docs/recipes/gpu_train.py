@@ -95,6 +95,26 @@ class Call:
         return self.a.seconds - (time.time() - self.t0)
 
     # ------------------------------------------------------------------ 1-2: Mitsuba and its variant
+    def setup_wheels(self) -> None:
+        """Install the carried wheels (``carry/wheels/*.whl``: the product's dependencies the machine's image lacks,
+        e.g. OpenEXR, trimesh, colour-science) into the work folder, once per machine."""
+        from importlib import metadata
+
+        def norm(name: str) -> str:
+            return name.lower().replace("-", "_")
+
+        have = {norm(d.metadata["Name"] or "") for d in metadata.distributions()}
+        wheels = [w for w in sorted(Path(self.a.carry).glob("wheels/*.whl")) if norm(w.name.split("-")[0]) not in have]
+        if not wheels:
+            return
+        site = self.work / "wheels"
+        if not (site / ".installed").exists():
+            subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile",
+                            "--upgrade", "--target", str(site)] + [str(w) for w in wheels], check=True)
+            (site / ".installed").write_text("\n".join(w.name for w in wheels))
+        self.env["PYTHONPATH"] = os.pathsep.join([self.env["PYTHONPATH"], str(site)])
+        self.say(f"wheels: {', '.join(w.name.split('-')[0] for w in wheels)} installed into {site}")
+
     def setup_mitsuba(self) -> None:
         if not self.a.carried_mitsuba:
             try:
@@ -346,6 +366,7 @@ class Call:
         a = self.a
         self.say(f"gpu_train call {a.call}: {a.seconds} s, work {self.work}, out {self.out}, device {a.device}, "
                  f"{os.cpu_count()} cores")
+        self.setup_wheels()
         self.setup_mitsuba()
         variant = self.choose_variant()
         self.render_validation(variant)
