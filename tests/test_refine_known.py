@@ -54,6 +54,24 @@ def test_known_lights_recover_a_glossy_sphere(glossy):
     assert res.report["psnr_db_mean"] > 35
 
 
+@pytest.mark.slow
+def test_cast_shadows_only_bound_the_model(glossy):
+    """An occluder hides three of the twelve lamps from the left half of the sphere (those photos 95 % darker
+    there): the fit takes such observations as cast shadow (``loss.shadow``) and recovers the normals; counted as
+    ordinary residuals they pull the normals away from the hidden lamps."""
+    truth, lights, photos, start = glossy
+    m = truth.mask
+    shadowed = [p.copy() for p in photos]
+    for k in (0, 1, 2):
+        shadowed[k][:, : m.shape[1] // 2] *= 0.05
+    err = {}
+    for shadow in (RefineSettings().loss.shadow, 0.0):
+        res = refine(shadowed, start, RefineSettings(seed=0).replace({"loss.shadow": shadow}), lights=_known(lights))
+        err[shadow] = angular_error_map(res.maps.normal, truth.normal, m)[m].mean()
+    assert RefineSettings().loss.shadow > 0
+    assert err[RefineSettings().loss.shadow] < 1.6 and err[0.0] > 2.5, err
+
+
 def test_given_relative_intensities_move_only_one_scale(glossy):
     truth, lights, photos, start = glossy
     quick = RefineSettings(seed=0).replace({"lights.iters": 60, "pixels.coarse_iters": 0, "pixels.fine_iters": 5})

@@ -60,6 +60,11 @@ class LossSettings:
     cauchy: float = 0.15
     """Scale of the Cauchy loss on the photo residuals: shadows, interreflections and highlights the model cannot
     explain weigh less."""
+    shadow: float = 0.3
+    """With lights known (given, from a ball, or a flat sample's lamps found and held), an observation darker than
+    this share of the model's prediction counts as cast shadow (the object hides the lamp from the point, which
+    the model does not know): it bounds the prediction from above only and adds no residual. 0: none. Estimated
+    lights are fitted without it (an error of the lights would pass for shadow)."""
     variation_threshold: float = 0.08
     """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
     less, down to 0.1, and a warning names the share of such pixels)."""
@@ -89,6 +94,8 @@ class LightStageSettings:
     """The light fit runs on a copy whose longer side is at most this many pixels."""
     pixels: int = 4096
     """Pixels of that copy taking part in the light fit."""
+    known_pixels: int = 2048
+    """Pixels taking part where the directions are known (only the intensities and the ambient are fitted)."""
     iters: int = 400
     """Adam steps of the light fit (and of a near-lamp fit's distances)."""
     kept_iters: int = 200
@@ -386,10 +393,20 @@ def _prepare(images, maps: MaterialMaps, s: RefineSettings) -> _Photos:
     return _Photos(mask, obs, scale, sat_level, _maps_arrays(maps), variation, frac_weak, warning, weight)
 
 
-class _Problem:
-    """Observations of N pixels: obs (K, N, 3), weight (N,), saturation flags, positions, priors (torch)."""
+#: Fit units (the photos' mean over the mask is 0.5): how far below the prediction a cast-shadowed observation is
+#: at least.
+SHADOW_GAP = 0.05
 
-    def __init__(self, torch, stack, mask, arrays, weight, sat_level, device, idx=None, start=None):
+
+class _Problem:
+    """Observations of N pixels: obs (K, N, 3), weight (N,), saturation flags, positions, priors (torch); shadow:
+    the share of the prediction below which an observation counts as cast shadow (0: none; ``loss.shadow``).
+    upper (K, N, 3): the residual (prediction - observation) above which an observation adds none: 0 where it is
+    clipped (a lower bound only), the cast-shadow level where ``shadow`` is set (an observation below ``shadow``
+    times the prediction and at least :data:`SHADOW_GAP` below it: an upper bound only), else infinite."""
+
+    def __init__(self, torch, stack, mask, arrays, weight, sat_level, device, idx=None, start=None,
+                 shadow: float = 0.0):
         rows, cols = np.nonzero(mask)
         if idx is not None:
             rows, cols = rows[idx], cols[idx]
@@ -397,6 +414,11 @@ class _Problem:
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)  # noqa: E731
         self.obs = t(stack[:, rows, cols])
         self.sat = self.obs >= t(sat_level)[:, None, :]
+        if shadow > 0:  # obs < shadow pred and pred - obs > gap  <=>  pred - obs > max(obs (1 / shadow - 1), gap)
+            level = (self.obs * (1.0 / shadow - 1.0)).clamp(min=SHADOW_GAP)
+        else:
+            level = torch.full_like(self.obs, float("inf"))
+        self.upper = torch.where(self.sat, torch.zeros_like(level), level)
         self.weight = t(weight[rows, cols])
         self.n0 = t(arrays["normal"][rows, cols])
         self.b0 = t(arrays["base"][rows, cols])
@@ -422,7 +444,7 @@ class _Problem:
         """The torch tensors alone at pixels ``tsl`` (a slice or an index tensor on the device), without the pixel
         coordinates: usable inside ``torch.func`` transforms, where an index cannot become numpy."""
         new = object.__new__(_Problem)
-        new.obs, new.sat = self.obs[:, tsl], self.sat[:, tsl]
+        new.obs, new.sat, new.upper = self.obs[:, tsl], self.sat[:, tsl], self.upper[:, tsl]
         for k in ("weight", "n0", "ns", "b0", "r0", "m0", "pos"):
             setattr(new, k, getattr(self, k)[tsl])
         return new
@@ -436,7 +458,7 @@ def _loss(torch, prob: _Problem, px, lights, s: RefineSettings, c: float, brdf: 
     m = px.metal() if brdf else prob.m0
     pred = _shade(lights, prob.pos, n, b, r, m)
     res = pred - prob.obs
-    res = torch.where(prob.sat & (res > 0), torch.zeros_like(res), res)  # clipped highlights: only a lower bound
+    res = torch.where(res > prob.upper, torch.zeros_like(res), res)  # clipped: a lower bound; cast shadow: an upper
     rho = torch.log1p((res / c) ** 2)
     data = rho.mean(-1).sum(0) * prob.weight
     prior = s.priors.normal * ((n - prob.n0) ** 2).sum(-1)
@@ -665,10 +687,14 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     """
     import torch
 
+    s = settings or RefineSettings()
+    # The fit repeats bit for bit on a CPU as it is (measured); a GPU's kernels are held to it by torch's
+    # deterministic mode, whose switch imports torch's compiler stack (about 1.5 s), so only there.
+    on_gpu = torch.device(s.device).type != "cpu"
     was = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
-    torch.use_deterministic_algorithms(True, warn_only=True)  # bit-for-bit repeatable for a seed (measured)
+    if on_gpu:
+        torch.use_deterministic_algorithms(True, warn_only=True)
     try:
-        s = settings or RefineSettings()
         if lights is None and flat:
             from matcap.refine.flat import flat_lights
 
@@ -683,7 +709,8 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
             return _refine_known(torch, images, maps, s, progress, lights, flat={} if flat else None)
         return _refine_estimated(torch, images, maps, s, progress)
     finally:
-        torch.use_deterministic_algorithms(was[0], warn_only=was[1])
+        if on_gpu:
+            torch.use_deterministic_algorithms(was[0], warn_only=was[1])
 
 
 def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress, known,
@@ -736,8 +763,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, photo_report, positions=known.positions)
         arr_l = dict(arr_l, normal=start_l)
     n_l = int(mask_l.sum())
-    idx = np.sort(rng.choice(n_l, size=min(n_l, s.lights.pixels), replace=False))
-    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
+    idx = np.sort(rng.choice(n_l, size=min(n_l, s.lights.known_pixels), replace=False))
+    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l, shadow=s.loss.shadow)
     lights = _init_lights(torch, prob, s, device, directions)
     if inv_distance is not None:
         lights = _to_near(torch, lights, torch.as_tensor(centre, dtype=torch.float32, device=device))
@@ -753,7 +780,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     # ---- 2. per pixel
     t0 = time.perf_counter()
     full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
-                                            s.pixels.coarse_iters, s.pixels.fine_iters)
+                                            s.pixels.coarse_iters, s.pixels.fine_iters, shadow=s.loss.shadow)
     timings["maps_s"] = time.perf_counter() - t0
     bar.close()
 
@@ -778,6 +805,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "linear": None,
         "kept_network_maps": False,
         "ambient_share": round(out.ambient_share, 4),
+        "cast_shadow_share": round(out.shadowed_share, 4),
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
@@ -1227,28 +1255,29 @@ def _finish(torch, ph: _Photos, maps: MaterialMaps, chk: _Check, stage: _LightSt
 
 
 def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: RefineSettings, bar,
-                coarse_iters: int, fine_iters: int):
+                coarse_iters: int, fine_iters: int, shadow: float = 0.0):
     """The per-pixel stage: every pixel's normal, base colour, roughness and metallic under the fixed ``lights``,
     Levenberg-Marquardt on a half-size copy first (skipped at 128 px or less), whose corrections are upsampled as
     the start of the full-size solve.
 
     obs (K, H, W, 3) photos in fit units; mask (H, W); arrays: the priors ("normal", "base", "rough", "metal");
     weight (H, W) per-pixel data weight; sat_level (K, 3) clipping levels; start (H, W, 3) start normals or None
-    (the prior's). Returns (the full-size :class:`_Problem`, its :class:`PixelParams`, iterations done).
+    (the prior's); shadow: see :class:`_Problem`. Returns (the full-size :class:`_Problem`, its
+    :class:`PixelParams`, iterations done).
     """
     from matcap.refine.model import PixelParams
 
     device = torch.device(s.device)
     h, w = mask.shape
     c = s.loss.cauchy
-    full = _Problem(torch, obs, mask, arrays, weight, sat_level, device, start=start)
+    full = _Problem(torch, obs, mask, arrays, weight, sat_level, device, start=start, shadow=shadow)
     px_full = PixelParams.from_maps(full.ns, full.b0, full.r0, full.m0)
     iters_done = {"coarse": 0, "fine": 0}
     if coarse_iters > 0 and max(h, w) > 128:
         hw_c = (max(8, h // 2), max(8, w // 2))
         obs_c, mask_c, arr_c = _downsample(obs, mask, arrays if start is None else dict(arrays, start=start), hw_c)
         coarse = _Problem(torch, obs_c, mask_c, arr_c, _resize(weight, hw_c), sat_level, device,
-                          start=arr_c.get("start"))
+                          start=arr_c.get("start"), shadow=shadow)
         px_c0 = PixelParams.from_maps(coarse.ns, coarse.b0, coarse.r0, coarse.m0)
         px_c = _solve_pixels(torch, coarse, px_c0, lights, s, c, coarse_iters, bar, "maps 1/2")
         # upsample the corrections (parameter deltas), add them to the full-size start
@@ -1270,7 +1299,9 @@ def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: R
 class _Outputs:
     """The last stage's results: maps (the fitted ones, or the networks' where kept); residual (H, W) RMS
     re-render error / the photos' mean (NaN off-mask); psnr per photo (dB); prediction (K, H, W, 3) re-renders in
-    photo units; ambient_share (see :func:`ambient_share`); normal_change_deg: mean angle to the networks'."""
+    photo units; ambient_share (see :func:`ambient_share`); normal_change_deg: mean angle to the networks';
+    shadowed_share: share of the observations taken as cast shadow (``loss.shadow``), which, like clipped ones,
+    add no error where the re-render exceeds them."""
 
     maps: MaterialMaps
     residual: np.ndarray
@@ -1278,6 +1309,7 @@ class _Outputs:
     prediction: np.ndarray
     ambient_share: float
     normal_change_deg: float
+    shadowed_share: float
 
 
 def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float, maps: MaterialMaps,
@@ -1299,7 +1331,9 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
         metal[full.rows, full.cols] = (px.metal() if s.model.fit_brdf else full.m0).cpu().numpy()
     obs_px = full.obs.cpu().numpy()
     err = pred - obs_px
-    err = np.where(full.sat.cpu().numpy() & (err > 0), 0.0, err)  # a clipped pixel only bounds the light from below
+    over = err > full.upper.cpu().numpy()  # a clipped observation only bounds the model from below, a shadowed one
+    shadowed = over & ~full.sat.cpu().numpy()  # from above
+    err = np.where(over, 0.0, err)
     residual = np.full((h, w), np.nan, np.float32)
     residual[full.rows, full.cols] = np.sqrt((err ** 2).mean(axis=(0, 2))) / 0.5
     psnr = []
@@ -1322,7 +1356,7 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
                            height=None, meta=dict(maps.meta))
     network = _maps_arrays(maps)["normal"]
     change = np.degrees(np.arccos(np.clip((n_img[mask] * network[mask]).sum(-1), -1, 1)))
-    return _Outputs(refined, residual, psnr, prediction, share, float(change.mean()))
+    return _Outputs(refined, residual, psnr, prediction, share, float(change.mean()), float(shadowed.mean()))
 
 
 def _median_distance(lights) -> float:
@@ -1459,7 +1493,7 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
     def residuals(t, rows):
         sub, _, nrm, b, r, m = pixels(t, rows)
         res = _shade(lights, sub.pos, nrm, b, r, m) - sub.obs
-        res = res * ~(sub.sat & (res > 0))  # a clipped observation the model exceeds: no residual
+        res = res * _free(sub, res)
         return res.permute(1, 0, 2).reshape(len(t), -1), priors(sub, nrm, b, r, m)
 
     def jacobian(t, rows):
@@ -1474,7 +1508,7 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
         res = pred - sub.obs
         # a clipped observation the model exceeds: zero residual, no derivative (a product, not torch.where: the
         # model's values and derivatives are finite, and a product of floats is several times faster)
-        free = (~(sub.sat & (res > 0))).to(t.dtype)
+        free = _free(sub, res).to(t.dtype)
         flat = lambda x: (x * free).permute(1, 0, 2).reshape(count, -1)  # noqa: E731
         robust = flat(res)
         q = priors(sub, nrm, b, r, m)
@@ -1504,6 +1538,12 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
     out = [theta[:, 0:2], theta[:, 2:5]]
     out += [theta[:, 5], theta[:, 6]] if brdf else [rough_logit, metal_logit]
     return [t.contiguous() for t in out]
+
+
+def _free(sub: _Problem, res):
+    """(K, P, 3) True where an observation adds a residual: not a clipped one the model exceeds (a clipped photo
+    only bounds the model from below) and not a cast-shadowed one the model exceeds enough (``sub.upper``)."""
+    return res <= sub.upper
 
 
 def _predict(torch, prob: _Problem, px, lights, s) -> np.ndarray:
