@@ -149,3 +149,5 @@ def test_flat_sample_under_distant_lamps_keeps_the_networks_maps():
     result = refine(_photos(n, albedo, lamps, distant=True), start, RefineSettings(), flat=True)
     assert result.report["flat"]["lamps"] == "distant" and result.report["kept_network_maps"]
     assert np.array_equal(result.maps.normal, start.normal)
+    assert result.report["linear"]["reason"].startswith("a flat sample under distant lamps")
+    assert result.report["settings"]["checks"]["spread"] == RefineSettings().checks.spread  # the settings as given

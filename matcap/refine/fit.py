@@ -28,7 +28,7 @@ import contextlib
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -699,9 +699,8 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
             from matcap.refine.flat import flat_lights
 
             lights, found = flat_lights(images, maps.mask)
-            if lights is None:  # distant lamps: a plane's photos are nearly rank 1 and cannot tell them apart, so
-                # the networks' maps are kept (the lights fitted to them), what the falloff said recorded
-                result = refine(images, maps, s.replace({"checks.spread": 1.0}), progress)
+            if lights is None:  # distant lamps: the networks' maps are kept (the lights fitted to them)
+                result = _refine_estimated(torch, images, maps, s, progress, keep=FLAT_DISTANT)
                 result.report["flat"] = found
                 return result
             return _refine_known(torch, images, maps, s, progress, lights, flat=found)
@@ -1140,12 +1139,19 @@ def _object_radius(mask: np.ndarray) -> float:
     return max(math.sqrt(float(np.count_nonzero(mask)) / math.pi) * 2.0 / mask.shape[1], 1e-6)
 
 
-def _refine_estimated(torch, images, maps: MaterialMaps, s: RefineSettings, progress) -> RefineResult:
+#: Why a flat sample under distant lamps keeps the networks' maps (fit.json ``linear`` ``reason``).
+FLAT_DISTANT = ("a flat sample under distant lamps: its photos, of one plane, cannot tell the lights apart (the "
+                "lamps' falloff over it did not place them)")
+
+
+def _refine_estimated(torch, images, maps: MaterialMaps, s: RefineSettings, progress,
+                      keep: str | None = None) -> RefineResult:
     """The fit with estimated lights. Stages: (1) the photos (:func:`_prepare`); (2) lights: the candidate light
     models of :func:`candidate_models` in order, each fitted (:func:`_check`, :func:`_light_stage`) as far as the
     rule :func:`_judge` lets it; (3) the first accepted candidate's per-pixel solve and (4) outputs
     (:func:`_finish`; a glossy candidate is judged on its ambient share after them). Where none is accepted, the
-    networks' maps are kept, the first candidate's lights fitted to them, with every reason once.
+    networks' maps are kept, the first candidate's lights fitted to them, with every reason once. ``keep``: a
+    reason known before any check (:data:`FLAT_DISTANT`): the maps are kept for it, the lights fitted to them.
 
     The result's ``candidates``: every candidate judged, in order."""
     if s.model.light not in ("directional", "point"):
@@ -1154,6 +1160,13 @@ def _refine_estimated(torch, images, maps: MaterialMaps, s: RefineSettings, prog
     ph = _prepare(images, maps, s)
     checks: dict[bool, _Check] = {}
     tried: list[Candidate] = []
+    if keep is not None:
+        chk = _check(ph, s, True)
+        report = {k: v for k, v in chk.report.items() if k != "lambertian_only"}
+        chk = replace(chk, reason=keep, report={**report, "trusted": False, "reason": keep}, lambertian_only=False)
+        tried.append(Candidate(candidate_models(s)[0], reason=keep, final=True))
+        stage = _light_stage(torch, ph, chk, tried[0].model, s, progress)
+        return _kept(_finish(torch, ph, maps, chk, stage, s, t_start), tried)
     for model in candidate_models(s):
         whole = not tried
         chk = checks[whole] = checks.get(whole) or _check(ph, s, whole)
