@@ -61,10 +61,10 @@ class LossSettings:
     """Scale of the Cauchy loss on the photo residuals: shadows, interreflections and highlights the model cannot
     explain weigh less."""
     shadow: float = 0.3
-    """With lights known (given, from a ball, or a flat sample's lamps found and held), an observation darker than
-    this share of the model's prediction counts as cast shadow (the object hides the lamp from the point, which
-    the model does not know): it bounds the prediction from above only and adds no residual. 0: none. Estimated
-    lights are fitted without it (an error of the lights would pass for shadow)."""
+    """With lights known (given, or from a ball), an observation darker than this share of the model's prediction
+    counts as cast shadow (the object hides the lamp from the point, which the model does not know): it bounds the
+    prediction from above only and adds no residual. 0: none. Lights the fit estimates (a flat sample's lamps
+    found from their falloff too) go without it: an error of the lights would pass for shadow."""
     variation_threshold: float = 0.08
     """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
     less, down to 0.1, and a warning names the share of such pixels)."""
@@ -763,7 +763,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         arr_l = dict(arr_l, normal=start_l)
     n_l = int(mask_l.sum())
     idx = np.sort(rng.choice(n_l, size=min(n_l, s.lights.known_pixels), replace=False))
-    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l, shadow=s.loss.shadow)
+    shadow = 0.0 if known.source == "estimated" else s.loss.shadow  # found lamps' errors would pass for shadow
+    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l, shadow=shadow)
     lights = _init_lights(torch, prob, s, device, directions)
     if inv_distance is not None:
         lights = _to_near(torch, lights, torch.as_tensor(centre, dtype=torch.float32, device=device))
@@ -779,7 +780,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     # ---- 2. per pixel
     t0 = time.perf_counter()
     full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
-                                            s.pixels.coarse_iters, s.pixels.fine_iters, shadow=s.loss.shadow)
+                                            s.pixels.coarse_iters, s.pixels.fine_iters, shadow=shadow)
     timings["maps_s"] = time.perf_counter() - t0
     bar.close()
 
