@@ -399,10 +399,10 @@ SHADOW_GAP = 0.05
 
 
 class _Problem:
-    """Observations of N pixels: obs (K, N, 3), weight (N,), saturation flags, positions, priors (torch); shadow:
-    the share of the prediction below which an observation counts as cast shadow (0: none; ``loss.shadow``).
-    upper (K, N, 3): the residual (prediction - observation) above which an observation adds none: 0 where it is
-    clipped (a lower bound only), the cast-shadow level where ``shadow`` is set (an observation below ``shadow``
+    """Observations of N pixels: obs (K, N, 3), weight (N,), positions, priors (torch); shadow: the share of the
+    prediction below which an observation counts as cast shadow (0: none; ``loss.shadow``).
+    upper (K, N, 3): the residual (prediction - observation) above which an observation adds none: 0 exactly where
+    it is clipped (at its photo's ``sat_level``: a lower bound only), the cast-shadow level where ``shadow`` is set (an observation below ``shadow``
     times the prediction and at least :data:`SHADOW_GAP` below it: an upper bound only), else infinite."""
 
     def __init__(self, torch, stack, mask, arrays, weight, sat_level, device, idx=None, start=None,
@@ -413,12 +413,11 @@ class _Problem:
         self.rows, self.cols = rows, cols
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)  # noqa: E731
         self.obs = t(stack[:, rows, cols])
-        self.sat = self.obs >= t(sat_level)[:, None, :]
         if shadow > 0:  # obs < shadow pred and pred - obs > gap  <=>  pred - obs > max(obs (1 / shadow - 1), gap)
             level = (self.obs * (1.0 / shadow - 1.0)).clamp(min=SHADOW_GAP)
         else:
             level = torch.full_like(self.obs, float("inf"))
-        self.upper = torch.where(self.sat, torch.zeros_like(level), level)
+        self.upper = torch.where(self.obs >= t(sat_level)[:, None, :], torch.zeros_like(level), level)
         self.weight = t(weight[rows, cols])
         self.n0 = t(arrays["normal"][rows, cols])
         self.b0 = t(arrays["base"][rows, cols])
@@ -444,7 +443,7 @@ class _Problem:
         """The torch tensors alone at pixels ``tsl`` (a slice or an index tensor on the device), without the pixel
         coordinates: usable inside ``torch.func`` transforms, where an index cannot become numpy."""
         new = object.__new__(_Problem)
-        new.obs, new.sat, new.upper = self.obs[:, tsl], self.sat[:, tsl], self.upper[:, tsl]
+        new.obs, new.upper = self.obs[:, tsl], self.upper[:, tsl]
         for k in ("weight", "n0", "ns", "b0", "r0", "m0", "pos"):
             setattr(new, k, getattr(self, k)[tsl])
         return new
@@ -691,8 +690,8 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     # The fit repeats bit for bit on a CPU as it is (measured); a GPU's kernels are held to it by torch's
     # deterministic mode, whose switch imports torch's compiler stack (about 1.5 s), so only there.
     on_gpu = torch.device(s.device).type != "cpu"
-    was = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
     if on_gpu:
+        was = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
         torch.use_deterministic_algorithms(True, warn_only=True)
     try:
         if lights is None and flat:
@@ -1345,8 +1344,9 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
         metal[full.rows, full.cols] = (px.metal() if s.model.fit_brdf else full.m0).cpu().numpy()
     obs_px = full.obs.cpu().numpy()
     err = pred - obs_px
-    over = err > full.upper.cpu().numpy()  # a clipped observation only bounds the model from below, a shadowed one
-    shadowed = over & ~full.sat.cpu().numpy()  # from above
+    upper = full.upper.cpu().numpy()
+    over = err > upper  # a clipped observation (upper 0) only bounds the model from below, a shadowed one from above
+    shadowed = over & (upper > 0)
     err = np.where(over, 0.0, err)
     residual = np.full((h, w), np.nan, np.float32)
     residual[full.rows, full.cols] = np.sqrt((err ** 2).mean(axis=(0, 2))) / 0.5
