@@ -3,11 +3,12 @@ object normals against the rendered truth (`normal_gt.exr`).
 
     python benchmarks/ball_example_check.py [--example examples/ball] [--set KEY=VALUE ...]
 
-Rows: the capture (`matcap.capture.capture`, as `matcap capture` runs it) with the lights unknown (estimated),
-with `--ball auto` (calibrated from the ball in the photos) and with `--lights lights.json` (the true lights);
-``--set`` changes a fit setting (`RefineSettings.replace`, e.g. ``loss.shadow=0``). Columns: mean, median and 90th percentile of the angle
-to the true normal over the object's mask, the mean over its interior (the mask eroded by 2 px: the outline's
-pixels mix object and backdrop, which one normal per pixel cannot describe), the re-render PSNR, and the time.
+Rows: the capture (`matcap.capture.capture`, as `matcap capture` runs it) with the lights unknown (estimated), with
+`--ball auto` (calibrated from the ball in the photos) and with `--lights lights.json` (the true lights); ``--set``
+changes a fit setting (`RefineSettings.replace`, e.g. ``loss.shadow=0``). Columns: mean, median and 90th percentile
+of the angle to the true normal over the object's mask, the mean over its interior (the mask eroded by 2 px: the
+outline's pixels mix object and backdrop, which one normal per pixel cannot describe), the re-render PSNR, and the
+time.
 """
 from __future__ import annotations
 
@@ -56,8 +57,7 @@ def main(argv: list[str] | None = None) -> int:
             capture(example, out, linear=None, refine=True, refine_settings=settings, **more)
             seconds = time.perf_counter() - t
             err = angular_error_map(read_exr(out / "normal.exr")[..., :3], truth, mask)
-            fit = json.loads((out / "fit.json").read_text()) if (out / "fit.json").exists() else {}
-            psnr = fit.get("psnr_db_mean", float("nan"))
+            psnr = json.loads((out / "fit.json").read_text())["psnr_db_mean"]
             print(f"| {label} | {err[mask].mean():.2f} | {np.median(err[mask]):.2f} | "
                   f"{np.percentile(err[mask], 90):.2f} | {err[inner].mean():.2f} | {psnr:.1f} | {seconds:.1f} |",
                   flush=True)

@@ -14,8 +14,7 @@ type stubs, C++ headers and ~100 plugins; this keeps
 drops the rest and the debug symbols (``strip --strip-unneeded``), and packs what is left into one
 ``mitsuba-<ver>-drjit-<ver>-<tag>.tar.xz`` in ``--out`` (an ignored folder: ``/carry/`` is in .gitignore). Beside
 it, ``carry/wheels`` gets the wheels of the product's dependencies that the machine's image lacks (OpenEXR,
-trimesh, colour-science: 11.6 MB), which docs/recipes/gpu_train.py installs there. On the
-machine, ``tar -xJf carry/mitsuba/*.tar.xz -C /tmp/matcap_site`` and ``PYTHONPATH=/tmp/matcap_site`` make
+trimesh, colour-science: 11.6 MB), which docs/recipes/gpu_train.py installs there. On the machine, ``tar -xJf carry/mitsuba/*.tar.xz -C /tmp/matcap_site`` and ``PYTHONPATH=/tmp/matcap_site`` make
 ``import mitsuba`` work (docs/recipes/gpu_train.py does this itself). ``--verify`` unpacks the archive into a temporary
 folder and, in a child process that sees only that copy, imports it, renders a test scene in ``scalar_rgb`` and
 ``llvm_ad_rgb`` (the latter only where libLLVM >= 17 is installed) and renders two data v2 scenes with ``matcap
@@ -66,14 +65,19 @@ def download(dest: Path, python: str) -> list[Path]:
     names = {p.name.split("-")[0] for p in have}
     if {"mitsuba", "drjit"} <= names:
         return have
+    pip_download(dest, python, f"mitsuba=={MITSUBA}", f"drjit=={DRJIT}")
+    return sorted(dest.glob(f"*-{tag}-*.whl"))
+
+
+def pip_download(dest: Path, python: str, *requirements: str) -> None:
+    """``pip download --no-deps`` of binary wheels of ``requirements`` for CPython ``python`` on manylinux x86-64."""
     dest.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--python-version", python,
            "--implementation", "cp", "--platform", "manylinux_2_28_x86_64", "--platform", "manylinux_2_27_x86_64",
            "--platform", "manylinux_2_17_x86_64", "--platform", "manylinux2014_x86_64", "-d", str(dest),
-           f"mitsuba=={MITSUBA}", f"drjit=={DRJIT}"]
+           *requirements]
     log("downloading " + " ".join(cmd[3:]))
     subprocess.run(cmd, check=True)
-    return sorted(dest.glob(f"*-{tag}-*.whl"))
 
 
 #: The product's dependencies that the lent machine's image lacks (it has numpy, scipy, opencv, pillow, safetensors,
@@ -83,14 +87,9 @@ DEPENDENCIES = ("OpenEXR", "trimesh", "colour-science")
 
 def download_dependencies(dest: Path, python: str) -> list[Path]:
     """The wheels of :data:`DEPENDENCIES` for CPython ``python`` on manylinux x86-64, into ``dest``."""
-    dest.mkdir(parents=True, exist_ok=True)
     for old in dest.glob("*.whl"):
         old.unlink()
-    cmd = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:", "--python-version",
-           python, "--implementation", "cp", "--platform", "manylinux_2_28_x86_64", "--platform",
-           "manylinux_2_17_x86_64", "--platform", "manylinux2014_x86_64", "-d", str(dest), *DEPENDENCIES]
-    log("downloading " + " ".join(DEPENDENCIES))
-    subprocess.run(cmd, check=True)
+    pip_download(dest, python, *DEPENDENCIES)
     return sorted(dest.glob("*.whl"))
 
 
