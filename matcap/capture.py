@@ -504,6 +504,44 @@ def estimate(
     )
 
 
+#: A flat sample's photos longer than this (pixels, the longer side) meet the networks as a copy of this size,
+#: whose maps are upsampled as the start of the fit at the photos' full size (which makes the detail).
+FLAT_NETWORK_SIDE = 1024
+
+
+def network_maps(images: Sequence[np.ndarray], mask: np.ndarray | None, flat: bool | None, refine: bool,
+                 **estimate_kwargs) -> MaterialMaps:
+    """The networks' maps (:func:`estimate`) of ``images`` (K, (H, W, 3) linear RGB), at (H, W).
+
+    For a flat sample with the fit to follow (``refine``; ``flat`` True, or None and
+    :func:`matcap.refine.flat.check_flat` finds the copy's normals flat), photos longer than
+    :data:`FLAT_NETWORK_SIDE` are seen by the networks as a copy of that size, and the maps upsampled (normals
+    renormalised): their detail is the fit's to find, and full-size networks would take hours on large photos.
+    ``meta["network_size_wh"]`` records the size they saw.
+    """
+    h, w = images[0].shape[:2]
+    if not refine or flat is False or max(h, w) <= FLAT_NETWORK_SIDE:
+        maps = estimate(images, mask, **estimate_kwargs)
+        maps.meta["network_size_wh"] = [w, h]
+        return maps
+    small_images, small_mask = downscale_arrays(list(images), mask, FLAT_NETWORK_SIDE)
+    small = estimate(small_images, small_mask, **estimate_kwargs)
+    if flat is None and not flat_choice(None, small)[0]:  # an object: the networks see every pixel
+        maps = estimate(images, mask, **estimate_kwargs)
+        maps.meta["network_size_wh"] = [w, h]
+        return maps
+    import cv2
+
+    sh, sw = small.shape
+    valid = cv2.resize(small.mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+    full = valid if mask is None else valid & mask
+    up = lambda a: None if a is None else np.clip(  # noqa: E731
+        cv2.resize(a, (w, h), interpolation=cv2.INTER_LINEAR), 0.0, 1.0) * (full[..., None] if a.ndim == 3 else full)
+    return MaterialMaps(normal=upscale_normals(small.normal, (h, w), full), mask=full,
+                        base_color=up(small.base_color), roughness=up(small.roughness), metallic=up(small.metallic),
+                        meta={**small.meta, "network_size_wh": [sw, sh]})
+
+
 def _progress_callback(target: str, progress):
     if callable(progress):
         return lambda done, total: progress(target, done, total)
@@ -710,7 +748,7 @@ def capture(
 
         check_plane_mask(cap.mask if cap.mask is not None else np.ones(cap.images[0].shape[:2], bool))
     if maps is None:
-        maps = estimate(cap.images, cap.mask, **estimate_kwargs)
+        maps = network_maps(cap.images, cap.mask, flat, refine, **estimate_kwargs)
     else:  # the decision's sRGB prediction: the same call, made once
         maps = dataclasses.replace(maps, meta=dict(maps.meta))
     flat_record = None
@@ -852,7 +890,7 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
                                              seed=kwargs.get("seed", 0)), exclude) for lin in (False, True)}
     if "8-bit" not in caps[False].colour:
         return False, None, caps[False], None
-    maps = estimate(caps[False].images, caps[False].mask, **kwargs)
+    maps = network_maps(caps[False].images, caps[False].mask, flat, True, **kwargs)
     rng = np.random.default_rng(0)
     ys, xs = np.nonzero(maps.mask)
     pick = rng.choice(len(ys), size=min(len(ys), pixels), replace=False)

@@ -1332,7 +1332,6 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
     mask = np.asarray(maps.mask, bool)
     h, w = mask.shape
     k_count = full.obs.shape[0]
-    pred = _predict(torch, full, px, lights, s)  # (K, N, 3) fit units
     n_img = np.zeros((h, w, 3), np.float32)
     base = np.zeros((h, w, 3), np.float32)
     rough = np.zeros((h, w), np.float32)
@@ -1342,23 +1341,36 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
         base[full.rows, full.cols] = px.base().cpu().numpy()
         rough[full.rows, full.cols] = (px.rough() if s.model.fit_brdf else full.r0).cpu().numpy()
         metal[full.rows, full.cols] = (px.metal() if s.model.fit_brdf else full.m0).cpu().numpy()
-    obs_px = full.obs.cpu().numpy()
-    err = pred - obs_px
-    upper = full.upper.cpu().numpy()
-    over = err > upper  # a clipped observation (upper 0) only bounds the model from below, a shadowed one from above
-    shadowed = over & (upper > 0)
-    err = np.where(over, 0.0, err)
+    # re-rendered chunk by chunk of pixels: the photos' size of memory once (the prediction), not once per step
+    prediction = np.zeros((k_count, h, w, 3), np.float32)
     residual = np.full((h, w), np.nan, np.float32)
-    residual[full.rows, full.cols] = np.sqrt((err ** 2).mean(axis=(0, 2))) / 0.5
+    squared = np.zeros(k_count, np.float64)  # per photo: the sum of squared residuals
+    peaks = np.zeros((k_count, len(full)), np.float32)  # per photo and pixel: the brightest channel observed
+    shadowed, ambient, direct = 0, 0.0, 0.0
+    for i in range(0, len(full), s.pixels.chunk):
+        sl = slice(i, i + s.pixels.chunk)
+        part = full.part(sl)
+        pred = _predict(torch, part, px.take(sl), lights, s)  # (K, n, 3) fit units
+        obs_px = part.obs.cpu().numpy()
+        err = pred - obs_px
+        upper = part.upper.cpu().numpy()
+        over = err > upper  # a clipped observation (upper 0) only bounds the model from below, a shadowed one
+        shadowed += int((over & (upper > 0)).sum())  # from above
+        err[over] = 0.0
+        residual[part.rows, part.cols] = np.sqrt((err ** 2).mean(axis=(0, 2))) / 0.5
+        squared += (err.astype(np.float64) ** 2).sum(axis=(1, 2))
+        peaks[:, sl] = obs_px.max(axis=2)
+        prediction[:, part.rows, part.cols] = pred / scale
+        with torch.no_grad():
+            a, d = _irradiance_parts(torch, lights, part.pos, px.take(sl).normal())
+        ambient, direct = ambient + a, direct + d
     psnr = []
     for k in range(k_count):
-        peak = float(np.percentile(obs_px[k].max(axis=1), 99.9))
-        mse = float((err[k] ** 2).mean())
+        peak = float(np.percentile(peaks[k], 99.9))
+        mse = float(squared[k] / max(3 * len(full), 1))
         psnr.append(10.0 * math.log10(peak ** 2 / max(mse, 1e-12)) if peak > 0 else float("nan"))
-    prediction = np.zeros((k_count, h, w, 3), np.float32)
-    prediction[:, full.rows, full.cols] = pred / scale
-    with torch.no_grad():
-        share = ambient_share(torch, lights, full.pos, px.normal())
+    share = ambient / max(ambient + direct, 1e-12)
+    shadowed_share = shadowed / max(k_count * len(full) * 3, 1)
     if keep:  # the photos cannot correct the networks' maps: they are kept, bit for bit
         n_img = np.asarray(maps.normal, np.float32).copy()
         kept = maps.with_defaults()
@@ -1370,7 +1382,7 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
                            height=None, meta=dict(maps.meta))
     network = _maps_arrays(maps)["normal"]
     change = np.degrees(np.arccos(np.clip((n_img[mask] * network[mask]).sum(-1), -1, 1)))
-    return _Outputs(refined, residual, psnr, prediction, share, float(change.mean()), float(shadowed.mean()))
+    return _Outputs(refined, residual, psnr, prediction, share, float(change.mean()), shadowed_share)
 
 
 def _median_distance(lights) -> float:
@@ -1385,14 +1397,20 @@ def ambient_share(torch, lights, pos, normal) -> float:
     against the photos' own lights: near 0 for one lamp per photo in a dark room, large for environment light.
 
     lights: :class:`matcap.refine.model.LightParams`; pos (N, 3) plane positions; normal (N, 3) unit normals."""
+    a, d = _irradiance_parts(torch, lights, pos, normal)
+    return a / max(a + d, 1e-12)
+
+
+def _irradiance_parts(torch, lights, pos, normal) -> tuple[float, float]:
+    """(ambient, direct): the luminance irradiance of the SH ambient and of the photos' own lights at the pixels
+    ``pos`` (N, 3) with ``normal`` (N, 3), each summed over the pixels and averaged over the photos."""
     from matcap.refine.model import sh_irradiance
 
     luma = torch.tensor(LUMA, dtype=normal.dtype, device=normal.device)
     amb = (sh_irradiance(normal, lights.sh) * luma).sum(-1).clamp(min=0.0)  # (K|1, N)
     wo, irr = lights.incident(pos)
     direct = (normal[None] * wo).sum(-1).clamp(min=0.0) * (irr * luma).sum(-1)  # (K, N)
-    a, d = float(amb.mean()), float(direct.mean())
-    return a / max(a + d, 1e-12)
+    return float(amb.mean(0).sum()), float(direct.mean(0).sum())
 
 
 class _Stopped(Exception):
