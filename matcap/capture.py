@@ -66,11 +66,11 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> 
     return mask
 
 
-# Peak memory of a capture, per pixel of one photo at working size, with a margin over what was measured (16
-# photos of 1024x768 peaked at ~45 B/px over a ~0.5 GB base; docs/ci.md, "Huge inputs"): the decoded float32
-# stack, its normalised copy and the network's tensors. A capture whose estimate exceeds MEMORY_FRACTION of the
-# available memory is refused up front.
-BYTES_PER_IMAGE_PIXEL = 60
+# Peak memory of a capture, per pixel of one photo at working size, with a margin over what was measured (the fit
+# at full size: 16 photos of 4,000 x 3,000 peaked at ~77 B/px over the base; docs/ci.md, "Huge inputs"): the
+# decoded photos, the fit's copies of them and its re-render. A capture whose estimate exceeds MEMORY_FRACTION of
+# the available memory is refused up front.
+BYTES_PER_IMAGE_PIXEL = 80
 FIXED_BYTES = 1.5e9  # Python, torch, two small networks
 MEMORY_FRACTION = 0.8
 
