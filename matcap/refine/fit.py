@@ -1349,20 +1349,21 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
     shadowed, ambient, direct = 0, 0.0, 0.0
     for i in range(0, len(full), s.pixels.chunk):
         sl = slice(i, i + s.pixels.chunk)
-        part = full.part(sl)
-        pred = _predict(torch, part, px.take(sl), lights, s)  # (K, n, 3) fit units
+        part, part_px = full.part(sl), px.take(sl)
+        pred = _predict(torch, part, part_px, lights, s)  # (K, n, 3) fit units
         obs_px = part.obs.cpu().numpy()
         err = pred - obs_px
         upper = part.upper.cpu().numpy()
-        over = err > upper  # a clipped observation (upper 0) only bounds the model from below, a shadowed one
-        shadowed += int((over & (upper > 0)).sum())  # from above
+        # a clipped observation (upper 0) only bounds the model from below, a shadowed one from above
+        over = err > upper
+        shadowed += int((over & (upper > 0)).sum())
         err[over] = 0.0
         residual[part.rows, part.cols] = np.sqrt((err ** 2).mean(axis=(0, 2))) / 0.5
         squared += (err.astype(np.float64) ** 2).sum(axis=(1, 2))
         peaks[:, sl] = obs_px.max(axis=2)
         prediction[:, part.rows, part.cols] = pred / scale
         with torch.no_grad():
-            a, d = _irradiance_parts(torch, lights, part.pos, px.take(sl).normal())
+            a, d = _irradiance_parts(torch, lights, part.pos, part_px.normal())
         ambient, direct = ambient + a, direct + d
     psnr = []
     for k in range(k_count):
