@@ -516,27 +516,36 @@ def network_maps(images: Sequence[np.ndarray], mask: np.ndarray | None, flat: bo
     For a flat sample with the fit to follow (``refine``; ``flat`` True, or None and
     :func:`matcap.refine.flat.check_flat` finds the copy's normals flat), photos longer than
     :data:`FLAT_NETWORK_SIDE` are seen by the networks as a copy of that size, and the maps upsampled (normals
-    renormalised): their detail is the fit's to find, and full-size networks would take hours on large photos.
+    renormalised): their detail is the fit's to find, and the networks' time grows with the pixel count.
     ``meta["network_size_wh"]`` records the size they saw.
     """
     h, w = images[0].shape[:2]
-    if not refine or flat is False or max(h, w) <= FLAT_NETWORK_SIDE:
-        maps = estimate(images, mask, **estimate_kwargs)
-        maps.meta["network_size_wh"] = [w, h]
-        return maps
-    small_images, small_mask = downscale_arrays(list(images), mask, FLAT_NETWORK_SIDE)
-    small = estimate(small_images, small_mask, **estimate_kwargs)
-    if flat is None and not flat_choice(None, small)[0]:  # an object: the networks see every pixel
-        maps = estimate(images, mask, **estimate_kwargs)
-        maps.meta["network_size_wh"] = [w, h]
-        return maps
+    if refine and flat is not False and max(h, w) > FLAT_NETWORK_SIDE:
+        small_images, small_mask = downscale_arrays(list(images), mask, FLAT_NETWORK_SIDE)
+        small = estimate(small_images, small_mask, **estimate_kwargs)
+        if flat or flat_choice(None, small)[0]:
+            return _upsampled(small, (h, w), mask)
+    maps = estimate(images, mask, **estimate_kwargs)  # an object: the networks see every pixel
+    maps.meta["network_size_wh"] = [w, h]
+    return maps
+
+
+def _upsampled(small: MaterialMaps, size_hw: tuple[int, int], mask: np.ndarray | None) -> MaterialMaps:
+    """``small``'s maps at (H, W) = ``size_hw``: normals by :func:`upscale_normals`, the others bilinear; the
+    mask is the small one's (nearest) within ``mask`` (H, W) where given."""
     import cv2
 
+    h, w = size_hw
     sh, sw = small.shape
     valid = cv2.resize(small.mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
     full = valid if mask is None else valid & mask
-    up = lambda a: None if a is None else np.clip(  # noqa: E731
-        cv2.resize(a, (w, h), interpolation=cv2.INTER_LINEAR), 0.0, 1.0) * (full[..., None] if a.ndim == 3 else full)
+
+    def up(a: np.ndarray | None) -> np.ndarray | None:
+        if a is None:
+            return None
+        out = np.clip(cv2.resize(a, (w, h), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
+        return out * (full[..., None] if out.ndim == 3 else full)
+
     return MaterialMaps(normal=upscale_normals(small.normal, (h, w), full), mask=full,
                         base_color=up(small.base_color), roughness=up(small.roughness), metallic=up(small.metallic),
                         meta={**small.meta, "network_size_wh": [sw, sh]})
