@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import resource
 import subprocess
 import sys
@@ -86,7 +85,6 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     work = Path(args.work) if args.work else Path(f"/tmp/flat_large_{args.width}x{args.height}")
     sample = work / "sample"
-    truth_maps = None
     if not (sample / "sample.json").is_file():
         t0 = time.perf_counter()
         truth_maps = stretched_sample(args.set, args.width, args.height)
@@ -97,9 +95,7 @@ def main(argv=None) -> int:
                          "render": "matcap.refine.model.shade_fast", "render_s": time.perf_counter() - t0})
         del photos
     out = work / "result"
-    env = dict(os.environ, OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads),
-               PYTHONPATH=str(fc.REPO) + (os.pathsep + os.environ["PYTHONPATH"] if os.environ.get("PYTHONPATH")
-                                          else ""))
+    env = dict(fc._env(), OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads))
     cmd = [sys.executable, "-m", "matcap", "capture", str(sample / "photos"), "--flat", "--linear", "--quiet",
            "--overwrite", "--out", str(out)]
     t0 = time.perf_counter()
@@ -113,17 +109,17 @@ def main(argv=None) -> int:
 
     doc = json.loads((out / "capture.json").read_text())
     timings = doc.get("timings", {})
-    fit = json.loads((out / "fit.json").read_text()) if (out / "fit.json").is_file() else {}
+    fit_timings = json.loads((out / "fit.json").read_text())["timings"]
     scores = fc.score(read_result(out), fc.read_truth(sample), rough_constant=False)
     print(f"`matcap capture --flat` of a {args.width} x {args.height} swatch ({args.set}), {args.photos} photos, "
           f"{args.threads} threads\n")
     print("| wall (s) | networks (s) | fit (s) | fit stages (s) | peak memory (GiB) | networks saw | normal (deg) | "
           "base colour % below const. |")
     print("|---|---|---|---|---|---|---|---|")
-    stages = ", ".join(f"{k[:-2]} {v:.0f}" for k, v in (fit.get("timings") or {}).items() if k != "total_s")
+    stages = ", ".join(f"{k[:-2]} {v:.0f}" for k, v in fit_timings.items() if k != "total_s")
     saw = "x".join(str(v) for v in doc.get("network_size_wh", []))
     nets = sum(v for k, v in timings.items() if k in ("normal_s", "brdf_s"))
-    print(f"| {wall:.0f} | {nets:.0f} | {(fit.get('timings') or {}).get('total_s', float('nan')):.0f} | {stages} | "
+    print(f"| {wall:.0f} | {nets:.0f} | {fit_timings['total_s']:.0f} | {stages} | "
           f"{peak_gb:.1f} | {saw} | {scores['normal_deg']:.2f} | {scores.get('base_below_pct', float('nan')):.0f} |")
     return 0
 
