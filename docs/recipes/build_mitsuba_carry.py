@@ -14,7 +14,8 @@ type stubs, C++ headers and ~100 plugins; this keeps
 drops the rest and the debug symbols (``strip --strip-unneeded``), and packs what is left into one
 ``mitsuba-<ver>-drjit-<ver>-<tag>.tar.xz`` in ``--out`` (an ignored folder: ``/carry/`` is in .gitignore). Beside
 it, ``carry/wheels`` gets the wheels of the product's dependencies that the machine's image lacks (OpenEXR,
-trimesh, colour-science: 11.6 MB), which docs/recipes/gpu_train.py installs there. On the machine, ``tar -xJf carry/mitsuba/*.tar.xz -C /tmp/matcap_site`` and ``PYTHONPATH=/tmp/matcap_site`` make
+trimesh, colour-science: 11.6 MB), which docs/recipes/gpu_train.py installs there. On the machine,
+``tar -xJf carry/mitsuba/*.tar.xz -C /tmp/matcap_site`` and ``PYTHONPATH=/tmp/matcap_site`` make
 ``import mitsuba`` work (docs/recipes/gpu_train.py does this itself). ``--verify`` unpacks the archive into a temporary
 folder and, in a child process that sees only that copy, imports it, renders a test scene in ``scalar_rgb`` and
 ``llvm_ad_rgb`` (the latter only where libLLVM >= 17 is installed) and renders two data v2 scenes with ``matcap

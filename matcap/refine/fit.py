@@ -402,8 +402,9 @@ class _Problem:
     """Observations of N pixels: obs (K, N, 3), weight (N,), positions, priors (torch); shadow: the share of the
     prediction below which an observation counts as cast shadow (0: none; ``loss.shadow``).
     upper (K, N, 3): the residual (prediction - observation) above which an observation adds none: 0 exactly where
-    it is clipped (at its photo's ``sat_level``: a lower bound only), the cast-shadow level where ``shadow`` is set (an observation below ``shadow``
-    times the prediction and at least :data:`SHADOW_GAP` below it: an upper bound only), else infinite."""
+    it is clipped (at its photo's ``sat_level``: a lower bound only), the cast-shadow level where ``shadow`` is set
+    (an observation below ``shadow`` times the prediction and at least :data:`SHADOW_GAP` below it: an upper bound
+    only), else infinite."""
 
     def __init__(self, torch, stack, mask, arrays, weight, sat_level, device, idx=None, start=None,
                  shadow: float = 0.0):
