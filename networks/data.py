@@ -32,6 +32,12 @@ CONFIGURATIONS = (("env",), ("directional",), ("point",), ("env", "directional")
 FIXED_MOVING_PROB = 0.15
 
 
+def finished_scenes(root: Path) -> list[Path]:
+    """The scene folders under ``root`` that hold ``data.npz``, leaving out hidden ones: a generator writes each
+    scene into a hidden temporary folder (``.tmp-scene_...``) and renames it when complete."""
+    return [p.parent for p in root.glob("*/data.npz") if not p.parent.name.startswith(".")]
+
+
 def list_scenes(root: str | Path) -> list[Path]:
     """Scene folders of a dataset (those with ``data.npz``), in the manifest's order when there is one."""
     root = Path(root)
@@ -47,7 +53,7 @@ def list_scenes(root: str | Path) -> list[Path]:
     scenes = [root / n for n in names if (root / n / "data.npz").exists()]
     # scenes finished after the manifest was last written (e.g. a generator still running) come after it, sorted
     listed = set(scenes)
-    scenes += sorted(p.parent for p in root.glob("*/data.npz") if p.parent not in listed)
+    scenes += sorted(p for p in finished_scenes(root) if p not in listed)
     if not scenes:
         raise ValueError(f"{root}: no scenes with data.npz (make some with `matcap synth --out {root}`)")
     return scenes
@@ -89,8 +95,7 @@ class GrowingScenes:
     def refresh(self) -> int:
         """Append the scenes that appeared since the last look; returns how many."""
         known = {p.name for p in self.scenes}
-        new = sorted((p.parent for p in self.root.glob("*/data.npz") if p.parent.name not in known),
-                     key=lambda p: p.name)
+        new = sorted((p for p in finished_scenes(self.root) if p.name not in known), key=lambda p: p.name)
         if new:
             self._write(new, mode="a")
             self.scenes.extend(new)

@@ -54,6 +54,22 @@ def test_growing_scenes_only_append_and_resume_keeps_the_order(tiny_dataset, tmp
         read_scene_index(g.index, data, 9)
 
 
+def test_a_scene_still_being_written_is_not_listed(tiny_dataset, tmp_path):
+    """A generator writes each scene into a hidden folder and renames it when done; a trainer looking in between
+    must not take the hidden folder for a scene (it is gone a moment later)."""
+    from networks.data import list_scenes
+
+    names = sorted(p.name for p in tiny_dataset.iterdir() if (p / "data.npz").exists())
+    data = tmp_path / "data"
+    _copy(tiny_dataset, data, names[:2])
+    shutil.copytree(tiny_dataset / names[2], data / f".tmp-{names[2]}-12345")
+    assert [p.name for p in list_scenes(data)] == names[:2]
+    g = GrowingScenes(data, tmp_path / "run" / "scenes.txt")
+    assert g.refresh() == 0 and [p.name for p in g.scenes] == names[:2]
+    (data / f".tmp-{names[2]}-12345").rename(data / names[2])
+    assert g.refresh() == 1 and g.scenes[-1].name == names[2]
+
+
 def test_a_batch_draws_only_from_the_first_n_scenes(tiny_dataset):
     from networks.data import list_scenes
 
