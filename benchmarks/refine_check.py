@@ -206,7 +206,8 @@ def synthetic(args) -> None:
         if args.given_lights and obj.light_dirs is not None:  # one directional light per photo: give it
             from matcap.lightfiles import KnownLights
 
-            known = KnownLights(np.asarray(obj.light_dirs, float), None if obj.light_intensities is None else
+            known = KnownLights(np.asarray(obj.light_dirs, float),
+                                None if obj.light_intensities is None or args.directions_only else
                                 np.broadcast_to(np.asarray(obj.light_intensities, float).reshape(len(obj.images), -1),
                                                 (len(obj.images), 3)).copy(), "file", str(sc), "order")
         res = refine(obj.images, maps, _settings(args), lights=known)
@@ -494,6 +495,9 @@ def main(argv=None) -> int:
                     help="synthetic, timing: give the fit the true lights (the known-lights fit)")
     ap.add_argument("--given-only", action="store_true",
                     help="synthetic, with --given-lights: only the scenes whose lights are given")
+    ap.add_argument("--directions-only", action="store_true",
+                    help="synthetic, with --given-lights: give the directions alone (each photo's intensity is "
+                         "fitted, as after a calibration with clipped highlights)")
     ap.add_argument("--lights", metavar="txt|FILE",
                     help="uw: give the fit known lights: 'txt' each capture's lights.txt, or a light file (e.g. "
                          "the rig.json of `matcap calibrate uw_chrome`)")

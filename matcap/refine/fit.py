@@ -179,6 +179,10 @@ class PixelStageSettings:
     """Pixels x photos per chunk of the solve (its Jacobians' memory grows with both)."""
     chunk: int = 32768
     """Pixels per chunk of the re-render."""
+    found_lamps_detail: float = 0.125
+    """A flat sample whose lamps were found from their falloff: its fitted normals keep only the tilts finer than
+    this share of the sample's width (those of a Gaussian of that sigma are taken out; the sample is a plane at
+    larger scales, and a found lamp's error tilts the fit smoothly across it). 0: keep every tilt."""
 
 
 @dataclass
@@ -781,6 +785,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     t0 = time.perf_counter()
     full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
                                             s.pixels.coarse_iters, s.pixels.fine_iters, shadow=shadow)
+    if known.source == "estimated" and s.pixels.found_lamps_detail > 0:
+        px_full = _plane_detail(torch, full, px_full, mask, s.pixels.found_lamps_detail)
     timings["maps_s"] = time.perf_counter() - t0
     bar.close()
 
@@ -1439,6 +1445,34 @@ def _workers(threads: int) -> int:
     except (AttributeError, OSError):
         cpus = os.cpu_count() or 1
     return max(1, min(threads, cpus))
+
+
+def _plane_detail(torch, full: _Problem, px, mask: np.ndarray, share: float):
+    """``px`` with the normals' tilts larger than ``share`` of the sample's width taken out: the mean normal around
+    each pixel (the unit normals' mask-weighted Gaussian average of sigma ``share`` times the longer side of the
+    mask's bounding box; unit vectors, so a few steep outliers move it little) is turned to the camera axis, by
+    subtracting its gradient from the pixel's (``n = normalise(gx, gy, 1)``). The average runs on a copy where
+    sigma is 8 pixels, then is upsampled."""
+    import cv2
+
+    from matcap.refine.model import PixelParams
+
+    h, w = mask.shape
+    rows, cols = np.nonzero(mask)
+    width = max(rows.max() - rows.min(), cols.max() - cols.min()) + 1
+    sigma = share * width
+    f = min(1.0, 8.0 / max(sigma, 1e-6))
+    hw = (max(4, round(h * f)), max(4, round(w * f)))
+    m = mask.astype(np.float32)
+    normal = np.zeros((h, w, 3), np.float32)
+    normal[full.rows, full.cols] = px.normal().detach().cpu().numpy()
+    small = [cv2.resize(a, hw[::-1], interpolation=cv2.INTER_AREA) for a in (normal * m[..., None], m)]
+    low = [cv2.GaussianBlur(a, (0, 0), sigma * f, borderType=cv2.BORDER_REFLECT) for a in small]
+    low = cv2.resize(low[0] / np.maximum(low[1], 1e-6)[..., None], (w, h), interpolation=cv2.INTER_LINEAR)
+    low = low[full.rows, full.cols]
+    low_grad = low[:, :2] / np.maximum(low[:, 2:3], 0.1)
+    grad = px.grad - torch.from_numpy(low_grad).to(px.grad)
+    return PixelParams(grad, px.base_logit, px.rough_logit, px.metal_logit)
 
 
 def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
