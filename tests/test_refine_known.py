@@ -79,6 +79,7 @@ def test_given_relative_intensities_move_only_one_scale(glossy):
     ratio = np.array([e["intensity"] for e in res.lights]) / np.array([l.irradiance for l in lights])
     assert (ratio.std(0) / ratio.mean(0)).max() < 1e-4, ratio  # the given ratios, exactly
     assert res.report["lights"]["intensities"] == "given"
+    assert res.report["smooth_tilt_removed_sigma_widths"] is None  # given lights keep every tilt
 
 
 def test_capture_with_known_lights_round_trips(tmp_path, tiny_weights):

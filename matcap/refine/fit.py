@@ -785,8 +785,9 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     t0 = time.perf_counter()
     full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
                                             s.pixels.coarse_iters, s.pixels.fine_iters, shadow=shadow)
-    if known.source == "estimated" and s.pixels.found_lamps_detail > 0:
-        px_full = _plane_detail(torch, full, px_full, mask, s.pixels.found_lamps_detail)
+    detail = s.pixels.found_lamps_detail if known.source == "estimated" else 0.0
+    if detail > 0:
+        px_full = _plane_detail(torch, full, px_full, mask, detail)
     timings["maps_s"] = time.perf_counter() - t0
     bar.close()
 
@@ -812,6 +813,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "kept_network_maps": False,
         "ambient_share": round(out.ambient_share, 4),
         "cast_shadow_share": round(out.shadowed_share, 4),
+        "smooth_tilt_removed_sigma_widths": detail or None,
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
