@@ -64,7 +64,8 @@ class LossSettings:
     """With lights known (given, or from a ball), an observation darker than this share of the model's prediction
     counts as cast shadow (the object hides the lamp from the point, which the model does not know): it bounds the
     prediction from above only and adds no residual. 0: none. Lights the fit estimates (a flat sample's lamps
-    found from their falloff too) go without it: an error of the lights would pass for shadow."""
+    found from their falloff too) go without it: an error of the lights would pass for shadow. So does a flat
+    sample under given lights: a plane facing the camera hides no lamp from itself."""
     variation_threshold: float = 0.08
     """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
     less, down to 0.1, and a warning names the share of such pixels)."""
@@ -767,7 +768,9 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         arr_l = dict(arr_l, normal=start_l)
     n_l = int(mask_l.sum())
     idx = np.sort(rng.choice(n_l, size=min(n_l, s.lights.known_pixels), replace=False))
-    shadow = 0.0 if known.source == "estimated" else s.loss.shadow  # found lamps' errors would pass for shadow
+    # no cast-shadow rule for a flat sample (a plane facing the camera shades itself only through its small
+    # relief) nor for found lamps (their errors would pass for shadow)
+    shadow = 0.0 if known.source == "estimated" or flat is not None else s.loss.shadow
     prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l, shadow=shadow)
     lights = _init_lights(torch, prob, s, device, directions)
     if inv_distance is not None:
