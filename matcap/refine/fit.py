@@ -1463,8 +1463,7 @@ def _plane_detail(torch, full: _Problem, px, mask: np.ndarray, share: float):
     from matcap.refine.model import PixelParams
 
     h, w = mask.shape
-    rows, cols = np.nonzero(mask)
-    width = max(rows.max() - rows.min(), cols.max() - cols.min()) + 1
+    width = max(np.ptp(full.rows), np.ptp(full.cols)) + 1
     sigma = share * width
     f = min(1.0, 8.0 / max(sigma, 1e-6))
     hw = (max(4, round(h * f)), max(4, round(w * f)))

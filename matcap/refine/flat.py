@@ -330,7 +330,7 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
 
 
 #: The falloff placed the lamps where their distances cut the residual of distant lamps to at most this share of it
-#: (rendered swatches: 0.03-0.6 under lamps 1-3 widths away, 0.85 or more under distant lights)
+#: (rendered swatches: 0.03-0.6 under lamps 1-3 widths away, 0.87 or more under distant lights)
 NEAR_GAIN = 0.7
 #: ... and that residual (relative RMS) is at least this: a falloff that shows above the photos' noise.
 NEAR_FLOOR = 0.005
