@@ -10,7 +10,7 @@ Each call, in order (one line per stage):
 
 1. Mitsuba: imported as installed, else unpacked from ``carry/mitsuba/*.tar.xz`` (docs/recipes/build_mitsuba_carry.py).
 2. Variant: the first of cuda_ad_rgb, scalar_rgb, llvm_ad_rgb that renders a test scene (each probed in a child).
-3. Validation set: ``--val-scenes`` data v2 scenes of seed 11, test split, rendered before anything else by all
+3. Validation set: ``--val-scenes`` scenes (data v2, or ``--data-version 1``) of seed 11, test split, rendered before anything else by all
    render processes (shards of one `matcap synth` set): the same scenes on every machine and every call.
 4. Training data: ``--render-procs`` background processes render data v2 scenes of seed ``--seed-base + M`` into
    one folder (shard i of n each), where M is the call that started this machine: scene k of that seed is the same
@@ -179,7 +179,8 @@ class Call:
         return [sys.executable, __file__, "--render-worker", "--render-out", str(out), "--render-seed", str(seed),
                 "--render-scenes", str(scenes), "--render-split", split, "--render-shard", shard,
                 "--render-threads", str(threads), "--variant", variant, "--resolution", str(self.a.resolution),
-                "--spp", str(self.a.spp)] + (["--assets", self.a.assets] if self.a.assets else [])
+                "--spp", str(self.a.spp), "--data-version", str(self.a.data_version)] + (
+                    ["--assets", self.a.assets] if self.a.assets else [])
 
     def render_validation(self, variant: str) -> None:
         val = self.work / "val"
@@ -421,7 +422,7 @@ def render_worker(a) -> int:
 
     try:
         run_synth(a.render_out, a.render_scenes, resolution=a.resolution, seed=a.render_seed, shard=a.render_shard,
-                  assets=a.assets, split=a.render_split, spp=a.spp, progress=False, data_version=2)
+                  assets=a.assets, split=a.render_split, spp=a.spp, progress=False, data_version=a.data_version)
     except KeyboardInterrupt:  # SIGTERM: the scene in progress is dropped, finished ones stay
         return 130
     return 0
@@ -458,6 +459,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", default="small")
     ap.add_argument("--resolution", type=int, default=128)
     ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--data-version", type=int, default=2, choices=(1, 2),
+                    help="scene generator version of the rendered sets (`matcap synth --data-version`)")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--pixel-samples", type=int, default=2048)
     ap.add_argument("--max-images", type=int, default=6)

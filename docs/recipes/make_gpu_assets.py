@@ -1,0 +1,96 @@
+"""The training split's assets, reduced to what the scene generator reads, as one small archive for a lent GPU call.
+
+    python docs/recipes/make_gpu_assets.py --assets ../shared/data --out carry/assets        # -> train_assets.tar.xz
+
+A lent machine takes at most 64 MiB a call, and the full asset folder (61 MB) does not fit beside Mitsuba and the
+weights. The generator (`matcap.synth.AssetCache`) resamples every environment map to at most 512 x 256 and every
+texture to 256 x 256 anyway, so the archive holds, for the assets the train split may draw (the held-out ones of
+`scenes.synth_spec` are left out, with the unusable meshes):
+
+* meshes as they are (PLY);
+* environment maps resampled (area average) to ``--env-height`` rows and twice as many columns, scaled to unit mean
+  radiance over the sphere (what the generator does to them) and written as half-float EXR;
+* each texture set's maps decoded to linear (base colour from sRGB, the other maps as stored) and resampled to the
+  generator's 256 x 256, written as PNG, which the generator reads as linear (base colour with 16 bits, the others
+  with the 8 bits they had): the lent machine needs no colour-science;
+* the licence and source files of the three folders.
+
+On the lent machine: ``mkdir -p A && tar -xJf carry/assets/train_assets.tar.xz -C A``, then
+``gpu_train.py --assets A``.
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tarfile
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def build(assets: Path, out_dir: Path, env_height: int) -> Path:
+    sys.path.insert(0, str(REPO))
+    import cv2
+
+    from matcap.imageio import read_image, to_linear_float, write_exr, write_png
+    from matcap.synth import ENVMAP_CLAMP, catalog_from_dir
+    from scenes.synth_build import TEXTURE_SIZE
+
+    cat = catalog_from_dir(assets).for_split("train")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        for kind in ("meshes", "envmaps", "textures"):
+            (root / kind).mkdir()
+            for f in (assets / kind).iterdir():
+                if f.is_file() and (f.name.startswith("LICENSE") or f.name == "SOURCES.md"):
+                    shutil.copy(f, root / kind / f.name)
+        for name in cat.meshes:
+            shutil.copy(assets / name, root / name)
+        for name in cat.envmaps:
+            arr = np.asarray(read_image(assets / name).pixels, np.float32)
+            arr = np.where(np.isfinite(arr) & (arr > 0), arr, 0.0).astype(np.float32)
+            arr = cv2.resize(arr, (2 * env_height, env_height), interpolation=cv2.INTER_AREA)
+            h = arr.shape[0]
+            wgt = np.sin((np.arange(h) + 0.5) / h * np.pi)[:, None, None]
+            arr = np.minimum(arr / max(float((arr * wgt).sum() / (wgt.sum() * arr.shape[1] * 3)), 1e-8), ENVMAP_CLAMP)
+            write_exr(root / "envmaps" / (Path(name).stem + ".exr"), arr, half=True)
+        for name in cat.textures:
+            src, dst = assets / name, root / name
+            dst.mkdir()
+            for f in sorted(src.iterdir()):
+                stem = f.stem
+                if stem in ("basecolor", "normal_gl", "arm", "orm", "roughness"):
+                    arr, _ = to_linear_float(read_image(f), decode_srgb_8bit=stem == "basecolor")
+                    arr = cv2.resize(arr, (TEXTURE_SIZE, TEXTURE_SIZE), interpolation=cv2.INTER_AREA)
+                    # base colour: 16-bit linear (8 bits would band its darks); the others were 8-bit linear codes
+                    write_png(dst / f"{stem}.png", np.clip(arr, 0.0, 1.0), bits=16 if stem == "basecolor" else 8)
+                elif f.name.startswith("LICENSE") or f.suffix == ".md":
+                    shutil.copy(f, dst / f.name)
+        archive = out_dir / "train_assets.tar.xz"
+        tmp_archive = archive.with_suffix(".tmp")
+        with tarfile.open(tmp_archive, "w:xz", preset=9) as tar:
+            for kind in ("meshes", "envmaps", "textures"):
+                tar.add(root / kind, arcname=kind)
+        tmp_archive.replace(archive)
+    print(f"{archive}: {len(cat.meshes)} meshes, {len(cat.envmaps)} environment maps ({2 * env_height} x "
+          f"{env_height}), {len(cat.textures)} texture sets; {archive.stat().st_size / 1e6:.1f} MB")
+    return archive
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--assets", default=str(REPO.parent / "shared" / "data"), help="the full assets folder")
+    ap.add_argument("--out", default=str(REPO / "carry" / "assets"), help="folder for train_assets.tar.xz")
+    ap.add_argument("--env-height", type=int, default=128, help="rows of the resampled environment maps")
+    a = ap.parse_args(argv)
+    build(Path(a.assets), Path(a.out), a.env_height)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
