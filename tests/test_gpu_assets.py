@@ -26,14 +26,14 @@ def trimmed(tmp_path_factory):
     archive = _recipe().build(assets, out / "carry", env_height=16)
     with tarfile.open(archive) as tar:
         tar.extractall(out / "A", filter="data")
-    return assets, out / "A"
+    return assets, out / "A", archive
 
 
 def test_the_train_split_and_nothing_held_out(trimmed):
     from matcap.synth import catalog_from_dir
     from scenes.synth_spec import _stem
 
-    full, small = trimmed
+    full, small, _ = trimmed
     want = catalog_from_dir(full).for_split("train")
     got = catalog_from_dir(small)
     assert got.for_split("test").envmaps == [] and got.for_split("test").meshes == []
@@ -48,7 +48,7 @@ def test_the_train_split_and_nothing_held_out(trimmed):
 def test_maps_load_as_the_full_ones_without_colour_science(trimmed, monkeypatch):
     from matcap.synth import AssetCache
 
-    full, small = trimmed
+    full, small, _ = trimmed
     name = "textures/tea_set_01"  # base colour, normal map and packed ARM
     want = AssetCache(full).texture_set(name)  # decoded with colour-science
     monkeypatch.setitem(sys.modules, "colour", None)  # `import colour` now fails
@@ -61,3 +61,41 @@ def test_maps_load_as_the_full_ones_without_colour_science(trimmed, monkeypatch)
     h = env.shape[0]
     w = np.sin((np.arange(h) + 0.5) / h * np.pi)[:, None, None]
     assert abs(float((env * w).sum() / (w.sum() * env.shape[1] * 3)) - 1.0) < 1e-2  # unit mean radiance
+
+
+def test_a_carried_folder_unpacks_where_the_call_runs(trimmed, tmp_path):
+    """The rest of a call's carried folder (Mitsuba, the wheels but colour-science, the validation set as one
+    pack), then gpu_train's first stage on the lent machine: the archive and the pack unpacked into its work
+    folder and used."""
+    from argparse import Namespace
+
+    from test_datapack import _synth_like_dataset
+
+    _, small, archive = trimmed
+    val_data = _synth_like_dataset(tmp_path / "val_data", scenes=3, size=16)
+    carry = tmp_path / "carry"
+    for name in ("mitsuba/m.tar.xz", "wheels/openexr-1-py3-none-any.whl", "wheels/trimesh-1-py3-none-any.whl",
+                 "wheels/colour_science-1-py3-none-any.whl"):
+        (carry / name).parent.mkdir(parents=True, exist_ok=True)
+        (carry / name).write_bytes(b"x")
+    root = tmp_path / "carry_gpu"
+    (root / "assets").mkdir(parents=True)
+    (root / "assets" / archive.name).write_bytes(archive.read_bytes())
+    _recipe().carry_rest(carry, val_data, root)
+    assert sorted(p.name for p in (root / "wheels").iterdir()) == ["openexr-1-py3-none-any.whl",
+                                                                    "trimesh-1-py3-none-any.whl"]
+    assert (root / "mitsuba" / "m.tar.xz").exists() and [p.name for p in (root / "val").iterdir()] == ["pack_000.npz"]
+
+    spec = importlib.util.spec_from_file_location("gpu_train", REPO / "docs/recipes/gpu_train.py")
+    gpu_train = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gpu_train)
+    a = Namespace(work=str(tmp_path / "work"), out=str(tmp_path / "out"), call=1, val_scenes=32,
+                  assets=str(root / "assets" / archive.name), val_pack=str(root / "val" / "pack_000.npz"))
+    call = gpu_train.Call(a)
+    call.setup_carried_data()
+    scenes = sorted(p.name for p in val_data.glob("*/data.npz") for p in [p.parent])
+    assert a.val_scenes == len(scenes) and sorted(
+        p.parent.name for p in (tmp_path / "work" / "val").glob("*/data.npz")) == scenes
+    assert sorted(p.name for p in (tmp_path / "work" / "assets" / "meshes").glob("*.ply")) == sorted(
+        p.name for p in (small / "meshes").glob("*.ply"))
+    assert a.assets == str(tmp_path / "work" / "assets")

@@ -10,8 +10,9 @@ Each call, in order (one line per stage):
 
 1. Mitsuba: imported as installed, else unpacked from ``carry/mitsuba/*.tar.xz`` (docs/recipes/build_mitsuba_carry.py).
 2. Variant: the first of cuda_ad_rgb, scalar_rgb, llvm_ad_rgb that renders a test scene (each probed in a child).
-3. Validation set: ``--val-scenes`` scenes (data v2, or ``--data-version 1``) of seed 11, test split, rendered before anything else by all
-   render processes (shards of one `matcap synth` set): the same scenes on every machine and every call.
+3. Validation set: ``--val-scenes`` scenes (data v2, or ``--data-version 1``) of seed 11, test split, rendered
+   before anything else by all render processes (shards of one `matcap synth` set): the same scenes on every
+   machine and every call; or a carried pack of them (``--val-pack``).
 4. Training data: ``--render-procs`` background processes render data v2 scenes of seed ``--seed-base + M`` into
    one folder (shard i of n each), where M is the call that started this machine: scene k of that seed is the same
    whoever renders it (`matcap synth --data-version 2 --seed S --resolution R --spp P --split train`), and a fresh
@@ -181,6 +182,32 @@ class Call:
                 "--render-threads", str(threads), "--variant", variant, "--resolution", str(self.a.resolution),
                 "--spp", str(self.a.spp), "--data-version", str(self.a.data_version)] + (
                     ["--assets", self.a.assets] if self.a.assets else [])
+
+    def setup_carried_data(self) -> None:
+        """A carried asset archive (``--assets X.tar.xz``, docs/recipes/make_gpu_assets.py) unpacked into the work
+        folder, and a carried validation set (``--val-pack``, a `networks.datapack` pack) unpacked as the
+        validation set, once per machine."""
+        a = self.a
+        if a.assets and a.assets.endswith((".tar.xz", ".tar")):
+            dest = self.work / "assets"
+            if not (dest / ".unpacked").exists():
+                dest.mkdir(parents=True, exist_ok=True)
+                with tarfile.open(a.assets) as tar:
+                    tar.extractall(dest, filter="data")
+                (dest / ".unpacked").write_text(a.assets)
+            self.say(f"assets: {a.assets} unpacked into {dest}")
+            a.assets = str(dest)
+        if a.val_pack:
+            from networks.datapack import unpack
+
+            val = self.work / "val"
+            if not (val / "manifest.json").exists():
+                unpack([a.val_pack], val)
+                names = sorted(p.parent.name for p in val.glob("*/data.npz"))
+                (val / "manifest.json").write_text(json.dumps({"scenes": names, "source": a.val_pack}))
+            count = len(list(val.glob("*/data.npz")))
+            a.val_scenes = min(a.val_scenes, count)
+            self.say(f"validation set: {count} scenes from {a.val_pack}, {a.val_scenes} used")
 
     def render_validation(self, variant: str) -> None:
         val = self.work / "val"
@@ -369,6 +396,7 @@ class Call:
                  f"{os.cpu_count()} cores")
         self.setup_wheels()
         self.setup_mitsuba()
+        self.setup_carried_data()
         variant = self.choose_variant()
         self.render_validation(variant)
         self.start_renderers(variant)
@@ -440,7 +468,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variant", default="auto", choices=("auto",) + VARIANTS)
     ap.add_argument("--carried-mitsuba", action="store_true", help="use the carried Mitsuba even where one is "
                     "installed (to check the carried build)")
-    ap.add_argument("--assets", default=None, help="assets folder (meshes/, envmaps/, textures/); default procedural")
+    ap.add_argument("--assets", default=None, help="assets folder (meshes/, envmaps/, textures/) or an archive of "
+                    "one (docs/recipes/make_gpu_assets.py); default procedural")
+    ap.add_argument("--val-pack", default=None, help="a carried validation set (`python -m networks.datapack pack`) "
+                    "used instead of rendering one")
     ap.add_argument("--seed-base", type=int, default=2000, help="a machine first used in call M renders seed BASE+M")
     ap.add_argument("--max-scenes", type=int, default=100000, help="scenes per machine at most")
     ap.add_argument("--render-procs", type=int, default=0, help="render processes (0: 4 on CUDA, else the cores "

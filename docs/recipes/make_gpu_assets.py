@@ -1,6 +1,8 @@
 """The training split's assets, reduced to what the scene generator reads, as one small archive for a lent GPU call.
 
-    python docs/recipes/make_gpu_assets.py --assets ../shared/data --out carry/assets        # -> train_assets.tar.xz
+    python docs/recipes/make_gpu_assets.py --assets ../shared/data --out carry_gpu/assets    # -> train_assets.tar.xz
+    python docs/recipes/make_gpu_assets.py --assets ../shared/data --out carry_gpu/assets \
+        --carry carry --val-data data/val128                                              # the whole carried folder
 
 A lent machine takes at most 64 MiB a call, and the full asset folder (61 MB) does not fit beside Mitsuba and the
 weights. The generator (`matcap.synth.AssetCache`) resamples every environment map to at most 512 x 256 and every
@@ -15,8 +17,11 @@ texture to 256 x 256 anyway, so the archive holds, for the assets the train spli
   with the 8 bits they had): the lent machine needs no colour-science;
 * the licence and source files of the three folders.
 
-On the lent machine: ``mkdir -p A && tar -xJf carry/assets/train_assets.tar.xz -C A``, then
-``gpu_train.py --assets A``.
+With ``--carry DIR --val-data DATA`` the rest of a call's carried folder is made beside the archive (in the
+parent of ``--out``): ``mitsuba/`` and the OpenEXR and trimesh wheels of ``wheels/`` copied from ``DIR``
+(docs/recipes/build_mitsuba_carry.py), and ``val/`` holding ``DATA`` as one `networks.datapack` pack (WebP
+quality 95). On the lent machine, ``gpu_train.py --carry carry_gpu --assets carry_gpu/assets/train_assets.tar.xz
+--val-pack carry_gpu/val/pack_000.npz`` unpacks both.
 """
 from __future__ import annotations
 
@@ -82,13 +87,40 @@ def build(assets: Path, out_dir: Path, env_height: int) -> Path:
     return archive
 
 
+def carry_rest(carry: Path, val_data: Path, out_root: Path) -> None:
+    """Beside the archive: Mitsuba and the wheels the lent machine lacks (not colour-science: the archive needs
+    none), and the validation set as one pack."""
+    sys.path.insert(0, str(REPO))
+    from networks.datapack import pack
+
+    (out_root / "mitsuba").mkdir(parents=True, exist_ok=True)
+    (out_root / "wheels").mkdir(parents=True, exist_ok=True)
+    for f in sorted((carry / "mitsuba").glob("*")):
+        shutil.copy(f, out_root / "mitsuba" / f.name)
+    wheels = [w for w in sorted((carry / "wheels").glob("*.whl")) if not w.name.lower().startswith("colour")]
+    for w in wheels:
+        shutil.copy(w, out_root / "wheels" / w.name)
+    shutil.rmtree(out_root / "val", ignore_errors=True)
+    packs = pack(val_data, out_root / "val", max_mb=60.0, quality=95)
+    if len(packs) != 1:
+        raise SystemExit(f"{val_data}: {len(packs)} packs; one validation pack is wanted")
+    size = sum(f.stat().st_size for f in out_root.rglob("*") if f.is_file())
+    print(f"{out_root}: mitsuba, {len(wheels)} wheels, {packs[0].name}; {size / 1e6:.1f} MB in all")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--assets", default=str(REPO.parent / "shared" / "data"), help="the full assets folder")
-    ap.add_argument("--out", default=str(REPO / "carry" / "assets"), help="folder for train_assets.tar.xz")
+    ap.add_argument("--out", default=str(REPO / "carry_gpu" / "assets"), help="folder for train_assets.tar.xz")
     ap.add_argument("--env-height", type=int, default=128, help="rows of the resampled environment maps")
+    ap.add_argument("--carry", default=None, help="a carried folder with mitsuba/ and wheels/ to copy from")
+    ap.add_argument("--val-data", default=None, help="a `matcap synth` validation set to carry as one pack")
     a = ap.parse_args(argv)
+    if (a.carry is None) != (a.val_data is None):
+        ap.error("--carry and --val-data go together")
     build(Path(a.assets), Path(a.out), a.env_height)
+    if a.carry:
+        carry_rest(Path(a.carry), Path(a.val_data), Path(a.out).parent)
     return 0
 
 
