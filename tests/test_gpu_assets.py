@@ -93,7 +93,7 @@ def test_a_carried_folder_unpacks_where_the_call_runs(trimmed, tmp_path):
                   assets=str(root / "assets" / archive.name), val_pack=str(root / "val" / "pack_000.npz"))
     call = gpu_train.Call(a)
     call.setup_carried_data()
-    scenes = sorted(p.name for p in val_data.glob("*/data.npz") for p in [p.parent])
+    scenes = sorted(p.parent.name for p in val_data.glob("*/data.npz"))
     assert a.val_scenes == len(scenes) and sorted(
         p.parent.name for p in (tmp_path / "work" / "val").glob("*/data.npz")) == scenes
     assert sorted(p.name for p in (tmp_path / "work" / "assets" / "meshes").glob("*.ply")) == sorted(

@@ -10,11 +10,12 @@ texture to 256 x 256 anyway, so the archive holds, for the assets the train spli
 `scenes.synth_spec` are left out, with the unusable meshes):
 
 * meshes as they are (PLY);
-* environment maps resampled (area average) to ``--env-height`` rows and twice as many columns, scaled to unit mean
-  radiance over the sphere (what the generator does to them) and written as half-float EXR;
-* each texture set's maps decoded to linear (base colour from sRGB, the other maps as stored) and resampled to the
-  generator's 256 x 256, written as PNG, which the generator reads as linear (base colour with 16 bits, the others
-  with the 8 bits they had): the lent machine needs no colour-science;
+* environment maps as the generator loads them (at most 512 x 256, unit mean radiance over the sphere, sun peaks
+  capped), resampled (area average) to ``--env-height`` rows and twice as many columns, as half-float EXR;
+* each texture set's maps as the generator loads them (linear, 256 x 256: base colour decoded from sRGB,
+  roughness taken from a packed ARM / ORM map where there is one), written as PNG, which the generator reads as
+  linear (base colour with 16 bits, normal map and roughness with the 8 bits they had): the lent machine needs no
+  colour-science;
 * the licence and source files of the three folders.
 
 With ``--carry DIR --val-data DATA`` the rest of a call's carried folder is made beside the archive (in the
@@ -38,14 +39,16 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def build(assets: Path, out_dir: Path, env_height: int) -> Path:
+    """The archive ``out_dir/train_assets.tar.xz``: the train split's assets as `matcap.synth.AssetCache` loads
+    them (what the generator renders with), written back out small."""
     sys.path.insert(0, str(REPO))
     import cv2
 
-    from matcap.imageio import read_image, to_linear_float, write_exr, write_png
-    from matcap.synth import ENVMAP_CLAMP, catalog_from_dir
-    from scenes.synth_build import TEXTURE_SIZE
+    from matcap.imageio import write_exr, write_png
+    from matcap.synth import AssetCache, catalog_from_dir
 
     cat = catalog_from_dir(assets).for_split("train")
+    cache = AssetCache(assets)
     out_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
@@ -57,24 +60,21 @@ def build(assets: Path, out_dir: Path, env_height: int) -> Path:
         for name in cat.meshes:
             shutil.copy(assets / name, root / name)
         for name in cat.envmaps:
-            arr = np.asarray(read_image(assets / name).pixels, np.float32)
-            arr = np.where(np.isfinite(arr) & (arr > 0), arr, 0.0).astype(np.float32)
-            arr = cv2.resize(arr, (2 * env_height, env_height), interpolation=cv2.INTER_AREA)
-            h = arr.shape[0]
-            wgt = np.sin((np.arange(h) + 0.5) / h * np.pi)[:, None, None]
-            arr = np.minimum(arr / max(float((arr * wgt).sum() / (wgt.sum() * arr.shape[1] * 3)), 1e-8), ENVMAP_CLAMP)
-            write_exr(root / "envmaps" / (Path(name).stem + ".exr"), arr, half=True)
+            env = cache.envmap(name)  # at most 512 x 256, unit mean radiance, sun peaks capped
+            if env.shape[0] > env_height:
+                env = cv2.resize(env, (2 * env_height, env_height), interpolation=cv2.INTER_AREA)
+            write_exr(root / "envmaps" / (Path(name).stem + ".exr"), env, half=True)
         for name in cat.textures:
-            src, dst = assets / name, root / name
+            dst = root / name
             dst.mkdir()
-            for f in sorted(src.iterdir()):
-                stem = f.stem
-                if stem in ("basecolor", "normal_gl", "arm", "orm", "roughness"):
-                    arr, _ = to_linear_float(read_image(f), decode_srgb_8bit=stem == "basecolor")
-                    arr = cv2.resize(arr, (TEXTURE_SIZE, TEXTURE_SIZE), interpolation=cv2.INTER_AREA)
-                    # base colour: 16-bit linear (8 bits would band its darks); the others were 8-bit linear codes
-                    write_png(dst / f"{stem}.png", np.clip(arr, 0.0, 1.0), bits=16 if stem == "basecolor" else 8)
-                elif f.name.startswith("LICENSE") or f.suffix == ".md":
+            tex = cache.texture_set(name)  # linear, TEXTURE_SIZE square
+            # base colour: 16-bit linear (8 bits would band its darks); the others were 8-bit linear codes
+            for stem, key, bits in (("basecolor", "basecolor", 16), ("normal_gl", "normal", 8),
+                                    ("roughness", "roughness", 8)):
+                if tex[key] is not None:
+                    write_png(dst / f"{stem}.png", np.clip(tex[key], 0.0, 1.0), bits=bits)
+            for f in (assets / name).iterdir():
+                if f.name.startswith("LICENSE") or f.suffix == ".md":
                     shutil.copy(f, dst / f.name)
         archive = out_dir / "train_assets.tar.xz"
         tmp_archive = archive.with_suffix(".tmp")
