@@ -101,6 +101,11 @@ class LightStageSettings:
     """Adam steps of the light fit (and of a near-lamp fit's distances)."""
     kept_iters: int = 200
     """Adam steps of the light fit where the maps are kept (the lights are fitted to the networks' maps)."""
+    known_iters: int = 50
+    """Adam steps of the light fit for distant lights whose directions and relative intensities are both given:
+    only one overall scale and the ambient move, a short adjustment of their least-squares start (the ambient
+    starts at zero). Other known lights (each photo's intensity fitted, or lamps at known positions) take
+    ``iters`` steps."""
     lr: float = 0.02
     """Adam step size of the light parameters (directions, log intensities, ambient, inverse distances)."""
     lr_pixel: float = 0.05
@@ -722,12 +727,14 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     """The fit with lights the user knows (:class:`matcap.lightfiles.KnownLights`, one per photo).
 
     Stages: (1) lights: the given directions (and point-light positions) are held; the per-photo intensities (or,
-    where the file gives relative intensities, one overall RGB scale) and one ambient shared by every photo are
-    fitted, first by semi-calibrated Lambertian least squares (:func:`known_irradiance`), then jointly with a
-    subsample's maps under the Principled model; (2) the per-pixel solve (:func:`_solve_maps`) from calibrated
-    photometric-stereo normals; (3) outputs. With the lights known there is no bas-relief family to choose from,
-    so nothing is gated: the maps are always the fitted ones. ``flat``: what :func:`matcap.refine.flat.flat_lights`
-    found (empty where the lights were given), recorded in fit.json as ``flat``.
+    where the file gives relative intensities, one overall scale, their colours held) and one ambient shared by
+    every photo are fitted, first by least squares, then jointly with a subsample's maps under the Principled
+    model (``lights.known_iters`` or ``lights.iters`` Adam steps); the start normals come from
+    semi-calibrated Lambertian least squares (:func:`known_irradiance`); (2) the per-pixel solve
+    (:func:`_solve_maps`) from calibrated photometric-stereo normals; (3) outputs. With the lights known there is
+    no bas-relief family to choose from, so nothing is gated: the maps are always the fitted ones. ``flat``: what
+    :func:`matcap.refine.flat.flat_lights` found (empty where the lights were given), recorded in fit.json as
+    ``flat``.
     """
     t_start = time.perf_counter()
     ph = _prepare(images, maps, s)
@@ -779,8 +786,9 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     given_log = None
     if given is not None:  # relative intensities: start from them at the least-squares overall scale
         given_log = torch.as_tensor(np.log(np.maximum(given, 1e-12)), dtype=torch.float32, device=device)
-        lights.log_intensity = given_log + (lights.log_intensity - given_log).mean(0, keepdim=True)
-    lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", s.lights.iters, directions_free=False,
+        lights.log_intensity = given_log + (lights.log_intensity - given_log).mean()
+    light_iters = s.lights.known_iters if inv_distance is None and given is not None else s.lights.iters
+    lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", light_iters, directions_free=False,
                             relative_to=given_log)
     timings["lights_s"] = time.perf_counter() - t0
 
@@ -805,7 +813,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "psnr_db": [round(p, 3) for p in out.psnr],
         "psnr_db_mean": round(float(np.mean(out.psnr)), 3),
         "residual_mean": round(float(np.nanmean(out.residual)), 5),
-        "iterations": {"lights": s.lights.iters, **iters_done},
+        "iterations": {"lights": light_iters, **iters_done},
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(out.normal_change_deg, 3),
@@ -861,16 +869,16 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
                 directions_free: bool = True, maps_free: bool = True, relative_to=None, count: bool = True):
     """Adam on the lights (and, with ``maps_free``, the subsample's maps, anchored by the prior) under the full
     loss :func:`_loss` of the pixels ``prob``. ``directions_free`` False holds the directions (and a near lamp's
-    distance); ``relative_to`` (K, 3) log intensities: only one overall log scale per channel moves; ``count``:
-    add the steps to the progress total (False where the caller planned them). Returns (lights, a copy without
-    gradients; the last step's mean data term)."""
+    distance); ``relative_to`` (K, 3) log intensities: only one overall log scale moves (the colours are
+    held); ``count``: add the steps to the progress total (False where the caller planned them). Returns (lights,
+    a copy without gradients; the last step's mean data term)."""
     from matcap.refine.model import PixelParams
 
     px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
     offset = None
     light_t = [lights.sh] if s.model.ambient != "none" else []
     if relative_to is not None:
-        offset = (lights.log_intensity - relative_to).mean(0, keepdim=True).detach().clone()
+        offset = (lights.log_intensity - relative_to).mean().reshape(1, 1).detach().clone()
         light_t.append(offset)
     else:
         light_t.append(lights.log_intensity)
