@@ -72,6 +72,34 @@ def test_cast_shadows_only_bound_the_model(glossy):
     assert err[RefineSettings().loss.shadow] < 1.6 and err[0.0] > 2.5, err
 
 
+@pytest.mark.slow
+def test_outline_pixels_mixed_with_the_backdrop(glossy):
+    """The sphere's outline pixels cover it only half, the rest a lit grey backdrop (brighter than the sphere's
+    rim, and changing from photo to photo): fitted as mixtures (``pixels.outline``) their normals come back
+    closer than half the error of a fit that takes them for the object alone, and the rest stays as it was."""
+    from matcap.refine.fit import outline_zone
+
+    truth, lights, photos, start = glossy
+    m = truth.mask
+    edge = outline_zone(m, 1)
+    assert 100 < edge.sum() < 0.2 * m.sum()
+    mixed = []
+    for p, light in zip(photos, lights):
+        d = np.asarray(light.direction, float) / np.linalg.norm(light.direction)
+        back = np.float32(0.25 * (0.2 + d[2])) * np.float32([1.0, 0.95, 0.9])
+        q = np.where(m[..., None], p, back).astype(np.float32)
+        q[edge] = 0.5 * p[edge] + 0.5 * back
+        mixed.append(q)
+    err = {}
+    for width in (RefineSettings().pixels.outline, 0):
+        res = refine(mixed, start, RefineSettings(seed=0).replace({"pixels.outline": width}), lights=_known(lights))
+        e = angular_error_map(res.maps.normal, truth.normal, m)
+        err[width] = (e[edge].mean(), e[m & ~edge].mean())
+    assert RefineSettings().pixels.outline == 1
+    assert err[1][0] < 0.5 * err[0][0] and err[0][0] > 30, err
+    assert err[1][1] < 1.5, err
+
+
 def test_given_relative_intensities_move_only_one_scale(glossy):
     """Given relative intensities keep their ratios and their colours: one overall scale is fitted."""
     truth, lights, photos, start = glossy

@@ -85,6 +85,8 @@ class PriorSettings:
     """Weight of (r - r_net)^2."""
     metal: float = 0.5
     """Weight of (m - m_net)^2."""
+    cover: float = 0.1
+    """Weight of (1 - coverage)^2 of a pixel of the mask's outline (see :attr:`PixelStageSettings.outline`)."""
 
 
 @dataclass
@@ -96,7 +98,8 @@ class LightStageSettings:
     pixels: int = 4096
     """Pixels of that copy taking part in the light fit."""
     known_pixels: int = 2048
-    """Pixels taking part where the directions are known (only the intensities and the ambient are fitted)."""
+    """Pixels taking part where the directions are known (only the intensities and the ambient are fitted), drawn
+    off the mask's outline (``pixels.outline``), whose mixed pixels the light fit does not model."""
     iters: int = 400
     """Adam steps of the light fit (and of a near-lamp fit's distances)."""
     kept_iters: int = 200
@@ -185,6 +188,11 @@ class PixelStageSettings:
     """Pixels x photos per chunk of the solve (its Jacobians' memory grows with both)."""
     chunk: int = 32768
     """Pixels per chunk of the re-render."""
+    outline: int = 1
+    """Width in pixels of the mask's outline (where the mask meets the photo, not the photo's border): a pixel
+    there can cover the object only in part (the lens's blur, a mask drawn a pixel wide), so it is fitted as a
+    mixture, coverage x the model + (1 - coverage) x what lies behind it (the mean of the photo's pixels just off
+    the mask), its coverage a free parameter. 0: every pixel is the object's alone."""
     found_lamps_detail: float = 0.125
     """A flat sample whose lamps were found from their falloff: its fitted normals keep only the tilts finer than
     this share of the sample's width (those of a Gaussian of that sigma are taken out; the sample is a plane at
@@ -439,6 +447,7 @@ class _Problem:
 
         h, w = mask.shape
         self.pos = plane_positions(torch.from_numpy(rows), torch.from_numpy(cols), h, w).to(device)
+        self.backdrop = None  # (K, N, 3): what lies behind each pixel, where it mixes the object with it
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -457,6 +466,7 @@ class _Problem:
         new.obs, new.upper = self.obs[:, tsl], self.upper[:, tsl]
         for k in ("weight", "n0", "ns", "b0", "r0", "m0", "pos"):
             setattr(new, k, getattr(self, k)[tsl])
+        new.backdrop = None if self.backdrop is None else self.backdrop[:, tsl]
         return new
 
 
@@ -773,8 +783,10 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     else:
         start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, photo_report, positions=known.positions)
         arr_l = dict(arr_l, normal=start_l)
-    n_l = int(mask_l.sum())
-    idx = np.sort(rng.choice(n_l, size=min(n_l, s.lights.known_pixels), replace=False))
+    # the subsample leaves out the outline, whose pixels mix the object with what lies behind it
+    inner = np.flatnonzero(~outline_zone(mask_l, s.pixels.outline)[mask_l])
+    inner = inner if len(inner) else np.arange(int(mask_l.sum()))
+    idx = np.sort(rng.choice(inner, size=min(len(inner), s.lights.known_pixels), replace=False))
     # no cast-shadow rule for a flat sample (a plane facing the camera shades itself only through its small
     # relief) nor for found lamps (their errors would pass for shadow)
     shadow = 0.0 if known.source == "estimated" or flat is not None else s.loss.shadow
@@ -794,7 +806,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
 
     # ---- 2. per pixel
     t0 = time.perf_counter()
-    full, px_full, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
+    full, px_full, mixing, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
                                             s.pixels.coarse_iters, s.pixels.fine_iters, shadow=shadow)
     detail = s.pixels.found_lamps_detail if known.source == "estimated" else 0.0
     if detail > 0:
@@ -804,7 +816,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
 
     # ---- 3. outputs
     t0 = time.perf_counter()
-    out = _outputs(torch, full, px_full, lights, s, scale, maps)
+    out = _outputs(torch, full, px_full, lights, s, scale, maps, mixing=mixing)
     timings["outputs_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     report = {
@@ -824,6 +836,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "kept_network_maps": False,
         "ambient_share": round(out.ambient_share, 4),
         "cast_shadow_share": round(out.shadowed_share, 4),
+        "outline": _outline_record(torch, mixing),
         "smooth_tilt_removed_sigma_widths": detail or None,
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
@@ -1256,12 +1269,12 @@ def _finish(torch, ph: _Photos, maps: MaterialMaps, chk: _Check, stage: _LightSt
     timings: dict[str, float] = {"lights_s": stage.seconds}
     t0 = time.perf_counter()
     coarse_iters, fine_iters = (s.pixels.coarse_iters, s.pixels.fine_iters) if stage.trusted else (0, 0)
-    full, px_full, iters_done = _solve_maps(torch, ph.obs, mask, stage.arrays, ph.weight, ph.sat_level,
+    full, px_full, mixing, iters_done = _solve_maps(torch, ph.obs, mask, stage.arrays, ph.weight, ph.sat_level,
                                             stage.start, stage.lights, s, stage.bar, coarse_iters, fine_iters)
     timings["maps_s"] = time.perf_counter() - t0
     stage.bar.close()
     t0 = time.perf_counter()
-    out = _outputs(torch, full, px_full, stage.lights, s, scale, maps, keep=not stage.trusted)
+    out = _outputs(torch, full, px_full, stage.lights, s, scale, maps, keep=not stage.trusted, mixing=mixing)
     timings["outputs_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     report = {
@@ -1278,6 +1291,7 @@ def _finish(torch, ph: _Photos, maps: MaterialMaps, chk: _Check, stage: _LightSt
         "linear": dict(chk.report),
         "kept_network_maps": not stage.trusted,
         "ambient_share": round(out.ambient_share, 4),
+        "outline": _outline_record(torch, mixing),
         **({"light_distance_median": stage.distance} if stage.near else {}),
         **({"near_lamps": stage.found} if stage.found is not None else {}),
         "timings": {k: round(v, 3) for k, v in timings.items()},
@@ -1295,8 +1309,9 @@ def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: R
 
     obs (K, H, W, 3) photos in fit units; mask (H, W); arrays: the priors ("normal", "base", "rough", "metal");
     weight (H, W) per-pixel data weight; sat_level (K, 3) clipping levels; start (H, W, 3) start normals or None
-    (the prior's); shadow: see :class:`_Problem`. Returns (the full-size :class:`_Problem`, its
-    :class:`PixelParams`, iterations done).
+    (the prior's); shadow: see :class:`_Problem`. The pixels of the mask's outline are fitted as mixtures
+    (:func:`_outline`). Returns (the full-size :class:`_Problem`, its :class:`PixelParams`, its outline's
+    :class:`_Mixing` or None, iterations done).
     """
     from matcap.refine.model import PixelParams
 
@@ -1312,7 +1327,8 @@ def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: R
         coarse = _Problem(torch, obs_c, mask_c, arr_c, _resize(weight, hw_c), sat_level, device,
                           start=arr_c.get("start"), shadow=shadow)
         px_c0 = PixelParams.from_maps(coarse.ns, coarse.b0, coarse.r0, coarse.m0)
-        px_c = _solve_pixels(torch, coarse, px_c0, lights, s, c, coarse_iters, bar, "maps 1/2")
+        mix_c = _outline(torch, obs_c, mask_c, coarse, s)
+        px_c = _solve_pixels(torch, coarse, px_c0, lights, s, c, coarse_iters, bar, "maps 1/2", mix_c)
         # upsample the corrections (parameter deltas), add them to the full-size start
         delta = np.zeros(hw_c + (7,), np.float32)
         d = torch.cat([(a - b0).reshape(len(coarse), -1) for a, b0 in zip(px_c.tensors(), px_c0.tensors())], 1)
@@ -1322,10 +1338,89 @@ def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: R
         px_full = PixelParams(px_full.grad + up_t[:, 0:2], px_full.base_logit + up_t[:, 2:5],
                               px_full.rough_logit + up_t[:, 5], px_full.metal_logit + up_t[:, 6])
         iters_done["coarse"] = coarse_iters
+    mixing = _outline(torch, obs, mask, full, s) if coarse_iters > 0 or fine_iters > 0 else None
     if fine_iters > 0:
-        px_full = _solve_pixels(torch, full, px_full, lights, s, c, fine_iters, bar, "maps")
+        px_full = _solve_pixels(torch, full, px_full, lights, s, c, fine_iters, bar, "maps", mixing)
     iters_done["fine"] = fine_iters
-    return full, px_full, iters_done
+    return full, px_full, mixing, iters_done
+
+
+@dataclass
+class _Mixing:
+    """The pixels of the mask's outline (:attr:`PixelStageSettings.outline`), each fitted as coverage x the model
+    + (1 - coverage) x what lies behind it: index (M,) int64 into the problem's pixels; backdrop (K, M, 3) torch,
+    fit units; cover_logit (M,) torch, their coverage as a logit (updated by the solve)."""
+
+    index: np.ndarray
+    backdrop: Any
+    cover_logit: Any
+
+    def mix(self, torch, pred: np.ndarray, sl: slice, count: int) -> np.ndarray:
+        """``pred`` (K, n, 3) of the problem's pixels ``sl`` (of ``count``) with the outline's mixed in."""
+        where = np.full(count, -1, np.int64)
+        where[self.index] = np.arange(len(self.index))
+        loc = where[sl]
+        sel = np.nonzero(loc >= 0)[0]
+        if len(sel) == 0:
+            return pred
+        cover = torch.sigmoid(self.cover_logit).cpu().numpy()[loc[sel]][None, :, None]
+        pred = pred.copy()
+        pred[:, sel] = cover * pred[:, sel] + (1.0 - cover) * self.backdrop.cpu().numpy()[:, loc[sel]]
+        return pred
+
+
+def _outline_record(torch, mixing: "_Mixing | None") -> dict[str, Any]:
+    """fit.json ``outline``: how many pixels were fitted as mixtures and their coverage (mean, 10th percentile)."""
+    if mixing is None:
+        return {"pixels": 0}
+    cover = torch.sigmoid(mixing.cover_logit).cpu().numpy()
+    return {"pixels": len(cover), "coverage_mean": round(float(cover.mean()), 4),
+            "coverage_p10": round(float(np.percentile(cover, 10)), 4)}
+
+
+def outline_zone(mask: np.ndarray, width: int) -> np.ndarray:
+    """(H, W) bool: the pixels of ``mask`` (H, W) within ``width`` pixels (chessboard distance) of a pixel off it,
+    where a pixel can mix the object with what lies behind it (the photo's border does not count)."""
+    from scipy import ndimage
+
+    mask = np.asarray(mask, bool)
+    if width <= 0 or mask.all():
+        return np.zeros_like(mask)
+    return mask & ndimage.binary_dilation(~mask, np.ones((3, 3), bool), iterations=width)
+
+
+def _outline(torch, obs, mask, prob: "_Problem", s: RefineSettings) -> "_Mixing | None":
+    """The pixels of ``prob`` on the mask's outline and what lies behind each of them (None where there are none).
+
+    obs (K, H, W, 3) photos in fit units; mask (H, W). Outline: the mask's pixels within ``pixels.outline`` pixels
+    (chessboard distance) of a pixel off it (the photo's border does not count); behind one: per photo, the mean
+    of the off-mask pixels within ``pixels.outline + 1`` pixels of it. Coverage starts at 0.9."""
+    from scipy import ndimage
+
+    width = s.pixels.outline
+    near = outline_zone(mask, width)
+    index = np.nonzero(near[prob.rows, prob.cols])[0]
+    if len(index) == 0:
+        return None
+    rows, cols = prob.rows[index], prob.cols[index]
+    size = 2 * width + 3
+    pad = size // 2 + 1  # the filters run on the outline's bounding box (and its reach) only
+    r0, r1 = max(rows.min() - pad, 0), min(rows.max() + pad + 1, mask.shape[0])
+    c0, c1 = max(cols.min() - pad, 0), min(cols.max() + pad + 1, mask.shape[1])
+    box_off = (~mask[r0:r1, c0:c1]).astype(np.float32)
+    rr, cc = rows - r0, cols - c0
+    count = ndimage.uniform_filter(box_off, size, mode="constant")[rr, cc]
+    backdrop = np.empty((obs.shape[0], len(index), 3), np.float32)
+    for k in range(obs.shape[0]):
+        for ch in range(3):
+            summed = ndimage.uniform_filter(obs[k, r0:r1, c0:c1, ch] * box_off, size, mode="constant")
+            backdrop[k, :, ch] = summed[rr, cc] / np.maximum(count, 1e-6)
+    device = prob.obs.device
+    return _Mixing(index, torch.from_numpy(backdrop).to(device),
+                   torch.full((len(index),), math.log(9.0), dtype=torch.float32, device=device))
+
+
+
 
 
 @dataclass
@@ -1346,9 +1441,10 @@ class _Outputs:
 
 
 def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float, maps: MaterialMaps,
-             keep: bool = False) -> _Outputs:
-    """Re-render the photos under the fitted ``lights`` and maps ``px`` of the pixels ``full`` and assemble the
-    output maps (``keep``: the networks' maps, bit for bit, while the residual still describes the fit)."""
+             keep: bool = False, mixing: "_Mixing | None" = None) -> _Outputs:
+    """Re-render the photos under the fitted ``lights`` and maps ``px`` of the pixels ``full`` (the outline's
+    pixels mixed with what lies behind them, ``mixing``) and assemble the output maps (``keep``: the networks'
+    maps, bit for bit, while the residual still describes the fit)."""
     mask = np.asarray(maps.mask, bool)
     h, w = mask.shape
     k_count = full.obs.shape[0]
@@ -1371,6 +1467,8 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
         sl = slice(i, i + s.pixels.chunk)
         part, part_px = full.part(sl), px.take(sl)
         pred = _predict(torch, part, part_px, lights, s)  # (K, n, 3) fit units
+        if mixing is not None:
+            pred = mixing.mix(torch, pred, sl, len(full))
         obs_px = part.obs.cpu().numpy()
         err = pred - obs_px
         upper = part.upper.cpu().numpy()
@@ -1487,11 +1585,13 @@ def _plane_detail(torch, full: _Problem, px, mask: np.ndarray, share: float):
     return PixelParams(grad, px.base_logit, px.rough_logit, px.metal_logit)
 
 
-def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
+def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label, mixing: "_Mixing | None" = None):
     """Every pixel's maps with the lights fixed (independent problems), chunk by chunk: Levenberg-Marquardt
-    (:func:`_lm_pixels`) on the loss of :func:`_loss`. The chunks run side by side on as many threads as torch
-    was given (:func:`_workers`), each of them with one-thread operations, so a chunk's result does not depend on
-    the thread count; progress is reported from the calling thread."""
+    (:func:`_lm_pixels`) on the loss of :func:`_loss`; the outline's pixels (``mixing``, whose coverage is
+    updated in place) as mixtures of the model and what lies behind them, in chunks of their own. The chunks run
+    side by side on as many threads as torch was given (:func:`_workers`), each of them with one-thread
+    operations, so a chunk's result does not depend on the thread count; progress is reported from the calling
+    thread."""
     import queue
     import threading
     from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
@@ -1502,7 +1602,12 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
     out = [t.detach().clone() for t in px0.tensors()]
     n = len(prob)
     step = max(256, s.pixels.lm_observations // prob.obs.shape[0])
-    chunks = [slice(i, min(i + step, n)) for i in range(0, n, step)]
+    if mixing is None:
+        chunks = [(slice(i, min(i + step, n)), None) for i in range(0, n, step)]
+    else:
+        inner = np.setdiff1d(np.arange(n), mixing.index)
+        chunks = [(inner[i:i + step], None) for i in range(0, len(inner), step)]
+        chunks += [(mixing.index[i:i + step], slice(i, i + step)) for i in range(0, len(mixing.index), step)]
     bar.add_total(iters * len(chunks))
     losses = queue.SimpleQueue()
     stop = threading.Event()
@@ -1512,10 +1617,18 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
             raise _Stopped
         losses.put(loss)
 
-    def solve(sl):
-        solved = _lm_pixels(torch, prob.part(sl), [t[sl] for t in out], lights, s, c, iters, on_step)
+    def solve(sl, mix_sl):
+        part = prob.part(sl)
+        tsl = sl if isinstance(sl, slice) else torch.from_numpy(sl).to(prob.obs.device)
+        start = [t[tsl] for t in out]
+        if mix_sl is not None:
+            part.backdrop = mixing.backdrop[:, mix_sl]
+            start.append(mixing.cover_logit[mix_sl])
+        solved = _lm_pixels(torch, part, start, lights, s, c, iters, on_step)
         for o, t in zip(out, solved):
-            o[sl] = t.detach()
+            o[tsl] = t.detach()
+        if mix_sl is not None:
+            mixing.cover_logit[mix_sl] = solved[4].detach()
 
     def report():
         while not losses.empty():
@@ -1524,7 +1637,7 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
     with _one_thread(torch) as threads:
         pool = ThreadPoolExecutor(_workers(threads), initializer=torch.set_num_threads, initargs=(1,))
         try:
-            futures = [pool.submit(solve, sl) for sl in chunks]
+            futures = [pool.submit(solve, sl, mix_sl) for sl, mix_sl in chunks]
             pending = set(futures)
             while pending:
                 done, pending = wait(pending, timeout=0.05, return_when=FIRST_EXCEPTION)
@@ -1543,16 +1656,22 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label):
 def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
     """:func:`matcap.refine.solve.levenberg_marquardt` on :func:`_loss` of the pixels ``part``: the same data
     term (Cauchy, clipped highlights a lower bound only, weighted per pixel and averaged over the colour
-    channels) and the same priors, as residuals. ``start``: the four :class:`PixelParams` tensors; returns them."""
+    channels) and the same priors, as residuals. ``start``: the four :class:`PixelParams` tensors, and where the
+    pixels mix the object with what lies behind them (``part.backdrop``) their coverage logits; returns them.
+    Such a pixel's model is coverage x the Principled model + (1 - coverage) x the backdrop, with a prior
+    (``priors.cover``) on 1 - coverage."""
     from matcap.refine.model import PixelParams, shade_jacobian
     from matcap.refine.solve import levenberg_marquardt
 
-    grad, base_logit, rough_logit, metal_logit = start
+    grad, base_logit, rough_logit, metal_logit = start[:4]
     n = len(part)
     brdf = s.model.fit_brdf  # without it roughness and metallic stay the network's: 5 parameters
-    theta = torch.cat([grad, base_logit] + ([rough_logit[:, None], metal_logit[:, None]] if brdf else []), 1)
+    mixed = part.backdrop is not None  # one more: the coverage
+    theta = torch.cat([grad, base_logit] + ([rough_logit[:, None], metal_logit[:, None]] if brdf else [])
+                      + ([start[4][:, None]] if mixed else []), 1)
+    ci = theta.shape[1] - 1  # the coverage's column, where mixed
     roots = [math.sqrt(s.priors.normal), math.sqrt(s.priors.base / 3.0), math.sqrt(s.priors.rough),
-             math.sqrt(s.priors.metal)]
+             math.sqrt(s.priors.metal), math.sqrt(s.priors.cover)]
 
     taken = [None, part]  # the rows last taken and their problem: the Jacobian and the trial step share them
 
@@ -1564,17 +1683,25 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
         px = PixelParams(t[:, 0:2], t[:, 2:5], rl, ml)
         return sub, px, px.normal(), px.base(), px.rough() if brdf else sub.r0, px.metal() if brdf else sub.m0
 
-    def priors(sub, nrm, b, r, m):
+    def priors(sub, nrm, b, r, m, t):
         prior = [roots[0] * (nrm - sub.n0), roots[1] * (torch.log(b + 0.02) - torch.log(sub.b0 + 0.02))]
         if brdf:
             prior += [roots[2] * (r - sub.r0)[:, None], roots[3] * (m - sub.m0)[:, None]]
+        if mixed:
+            prior += [roots[4] * (1.0 - torch.sigmoid(t[:, ci]))[:, None]]
         return torch.cat(prior, 1)
+
+    def mix(t, sub, pred):
+        if not mixed:
+            return pred
+        a = torch.sigmoid(t[:, ci])[None, :, None]
+        return a * pred + (1.0 - a) * sub.backdrop
 
     def residuals(t, rows):
         sub, _, nrm, b, r, m = pixels(t, rows)
-        res = _shade(lights, sub.pos, nrm, b, r, m) - sub.obs
+        res = mix(t, sub, _shade(lights, sub.pos, nrm, b, r, m)) - sub.obs
         res = res * _free(sub, res)
-        return res.permute(1, 0, 2).reshape(len(t), -1), priors(sub, nrm, b, r, m)
+        return res.permute(1, 0, 2).reshape(len(t), -1), priors(sub, nrm, b, r, m, t)
 
     def jacobian(t, rows):
         sub, px, nrm, b, r, m = pixels(t, rows)
@@ -1585,13 +1712,18 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
         tangents = (axes - nrm[None] * nrm.T[:2, :, None]) / size[None]
         wo, irr = lights.incident(sub.pos)
         pred, d_n, d_b, d_r, d_m = shade_jacobian(nrm, b, r, m, wo, irr, lights.sh, tangents)
+        if mixed:  # coverage a: the model's derivatives scale by a; d/d logit(a) = (pred - backdrop) a (1 - a)
+            a = torch.sigmoid(t[:, ci])
+            d_a = (pred - sub.backdrop) * (a * (1.0 - a))[None, :, None]
+            a3 = a[None, :, None]
+            pred, d_n, d_b, d_r, d_m = mix(t, sub, pred), d_n * a3[None], d_b * a3, d_r * a3, d_m * a3
         res = pred - sub.obs
         # a clipped observation the model exceeds: zero residual, no derivative (a product, not torch.where: the
         # model's values and derivatives are finite, and a product of floats is several times faster)
         free = _free(sub, res).to(t.dtype)
         flat = lambda x: (x * free).permute(1, 0, 2).reshape(count, -1)  # noqa: E731
         robust = flat(res)
-        q = priors(sub, nrm, b, r, m)
+        q = priors(sub, nrm, b, r, m, t)
         q_width = q.shape[1]
         jr = [flat(d_n[0]), flat(d_n[1])]
         jq = [torch.cat([roots[0] * tangents[i], t.new_zeros(count, q_width - 3)], 1) for i in range(2)]
@@ -1609,6 +1741,11 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
                 col = t.new_zeros(count, q_width)
                 col[:, 6 + i] = roots[2 + i] * sv
                 jq.append(col)
+        if mixed:
+            jr.append(flat(d_a))
+            col = t.new_zeros(count, q_width)
+            col[:, q_width - 1] = -roots[4] * a * (1.0 - a)
+            jq.append(col)
         return robust, q, jr, jq
 
     dev = theta.device
@@ -1617,6 +1754,7 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
                                 jacobian=jacobian)
     out = [theta[:, 0:2], theta[:, 2:5]]
     out += [theta[:, 5], theta[:, 6]] if brdf else [rough_logit, metal_logit]
+    out += [theta[:, ci]] if mixed else []
     return [t.contiguous() for t in out]
 
 
@@ -1705,11 +1843,15 @@ class _Bar:
 
 def fit_light_only(image: np.ndarray, maps: MaterialMaps, settings: RefineSettings | None = None) -> dict[str, Any]:
     """Fit only the light of one photo (H, W, 3) to frozen ``maps`` (e.g. refined on the other photos): the
-    held-out check. Returns {"psnr_db", "light": lights.json entry (photo units)}."""
+    held-out check. The light is fitted and the PSNR taken over the mask less its outline (``pixels.outline``:
+    the maps describe the object alone, not its mixture with what lies behind it there). Returns {"psnr_db",
+    "light": lights.json entry (photo units)}."""
     import torch
 
     s = settings or RefineSettings()
     mask = np.asarray(maps.mask, bool)
+    check_inputs([image, image], mask)
+    mask = mask & ~outline_zone(mask, s.pixels.outline)
     stack = check_inputs([image, image], mask)[:1]
     device = torch.device(s.device)
     torch.manual_seed(s.seed)
