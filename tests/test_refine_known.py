@@ -100,6 +100,38 @@ def test_outline_pixels_mixed_with_the_backdrop(glossy):
     assert err[1][1] < 1.5, err
 
 
+def test_start_normals_fall_back_to_the_networks_where_lambertian_fails():
+    """The known-lights start normals: calibrated Lambertian least squares where that model explains a pixel's
+    photos (to ``priors.lambertian_misfit``), the networks' normals where it does not (a highlight in two
+    photos)."""
+    from matcap.refine.fit import _photo_normals
+
+    rng = np.random.default_rng(0)
+    k, h, w = 12, 8, 8
+    d = np.column_stack([rng.uniform(-0.5, 0.5, k), rng.uniform(-0.5, 0.5, k), np.ones(k)])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    n = np.column_stack([rng.uniform(-0.3, 0.3, h * w), rng.uniform(-0.3, 0.3, h * w), np.ones(h * w)])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    lum = np.clip(n @ d.T, 0, None).T * 0.6  # (K, P) white Lambertian, irradiance 1
+    glossy = np.zeros(h * w, bool)
+    glossy[::3] = True
+    lum[:2, glossy] *= 2.5  # a highlight in two photos
+    obs = np.repeat(lum.reshape(k, h, w, 1), 3, axis=3).astype(np.float32)
+    mask = np.ones((h, w), bool)
+    network = np.tile(np.float32([0.0, 0.0, 1.0]), (h, w, 1))
+    misfit = RefineSettings().priors.lambertian_misfit
+    start, report = _photo_normals(obs, mask, network, d, max_misfit=misfit)
+    got = start.reshape(-1, 3)
+    err = np.degrees(np.arccos(np.clip((got * n).sum(1), -1, 1)))
+    assert err[~glossy].max() < 0.5, err[~glossy].max()
+    np.testing.assert_array_equal(got[glossy], network.reshape(-1, 3)[glossy])
+    assert report["solved_fraction"] == pytest.approx((~glossy).mean(), abs=1e-3)
+    plain, plain_report = _photo_normals(obs, mask, network, d)  # without the rule: least squares everywhere
+    assert plain_report["solved_fraction"] == 1.0
+    moved = np.degrees(np.arccos(np.clip(plain.reshape(-1, 3)[glossy][:, 2], -1, 1)))
+    assert moved.mean() > 5.0, moved.mean()  # least squares moved them off the networks' (0, 0, 1)
+
+
 def test_given_relative_intensities_move_only_one_scale(glossy):
     """Given relative intensities keep their ratios and their colours: one overall scale is fitted."""
     truth, lights, photos, start = glossy

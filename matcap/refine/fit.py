@@ -85,6 +85,11 @@ class PriorSettings:
     """Weight of (r - r_net)^2."""
     metal: float = 0.5
     """Weight of (m - m_net)^2."""
+    lambertian_misfit: float = 0.3
+    """Known lights on an object: a pixel's calibrated Lambertian normal is its start and n_prior only where the
+    Lambertian model explains its photos to this relative misfit (RMS over the photos that light it / its mean
+    brightness); elsewhere (a highlight, metal, a cast shadow: not Lambertian) the networks' normal is. A flat
+    sample keeps its Lambertian normals."""
     cover: float = 0.1
     """Weight of (1 - coverage)^2 of a pixel of the mask's outline (see :attr:`PixelStageSettings.outline`)."""
 
@@ -570,10 +575,13 @@ def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSett
     return None
 
 
-def _photo_normals(obs, mask, network, s_lum, report=None, positions=None, chunk: int = 1 << 18):
+def _photo_normals(obs, mask, network, s_lum, report=None, positions=None, chunk: int = 1 << 18,
+                   max_misfit: float | None = None):
     """Calibrated photometric-stereo normals (H, W, 3) of the photos ``obs`` (K, H, W, 3) under the lights
     ``s_lum`` (K, 3: direction times luminance irradiance at the object's centre): robust Lambertian least squares
-    where a pixel is lit in 4 photos or more, the networks' normals ``network`` elsewhere. ``positions`` (K, 3):
+    where a pixel is lit in 4 photos or more (and, given ``max_misfit``, where the Lambertian model's RMS misfit
+    over the photos that light it is at most that share of its mean brightness), the networks' normals
+    ``network`` elsewhere. ``positions`` (K, 3):
     the lamps' positions on the framing plane's world units (near lamps): each pixel then gets its own direction
     toward each lamp and the irradiance falls off with the squared distance. They are both the start and the prior
     of the per-pixel stage. Returns (normals, report: ``solved_fraction``); ``report`` given: reused (a
@@ -590,7 +598,15 @@ def _photo_normals(obs, mask, network, s_lum, report=None, positions=None, chunk
     for a in range(0, len(rows), chunk):
         r, c = rows[a:a + chunk], cols[a:a + chunk]
         lights = s_lum if positions is None else _near_vectors(s_lum, positions, centre, mask.shape, r, c)
-        n, _, solved = solve_normals(_luminance(obs, r, c), lights, network[r, c])
+        lum = _luminance(obs, r, c)
+        n, albedo, solved = solve_normals(lum, lights, network[r, c])
+        if max_misfit is not None:
+            unit = np.einsum("kpi,pi->kp", lights, n) if lights.ndim == 3 else lights @ n.T
+            shade = np.clip(unit, 0.0, None) * albedo[None]
+            lit = shade > 0
+            misfit = np.sqrt(((lum - shade) ** 2 * lit).sum(0) / np.maximum(lit.sum(0), 1))
+            solved &= misfit <= max_misfit * np.maximum(lum.mean(0), 1e-6)
+            n = np.where(solved[:, None], n, network[r, c])
         start[r, c] = n
         solved_count += int(solved.sum())
     if report is None:
@@ -776,12 +792,16 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     irr = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, arr_l["normal"][rows_l, cols_l],
                            None if given is None else given @ luma)
     s_lum = directions * irr[:, None]
-    start, photo_report = _photo_normals(obs, mask, arrays["normal"], s_lum, positions=known.positions)
+    # a flat sample keeps the misfit Lambertian normals: the networks' are a poorer fallback on a swatch's relief
+    misfit = s.priors.lambertian_misfit if flat is None else None
+    start, photo_report = _photo_normals(obs, mask, arrays["normal"], s_lum, positions=known.positions,
+                                         max_misfit=misfit)
     arrays = dict(arrays, normal=start)
     if hw_l == (h, w):
         arr_l, start_l = arrays, start
     else:
-        start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, photo_report, positions=known.positions)
+        start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, photo_report, positions=known.positions,
+                                    max_misfit=misfit)
         arr_l = dict(arr_l, normal=start_l)
     # the subsample leaves out the outline, whose pixels mix the object with what lies behind it
     inner = np.flatnonzero(~outline_zone(mask_l, s.pixels.outline)[mask_l])
