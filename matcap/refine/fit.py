@@ -581,12 +581,11 @@ def _photo_normals(obs, mask, network, s_lum, report=None, positions=None, chunk
     ``s_lum`` (K, 3: direction times luminance irradiance at the object's centre): robust Lambertian least squares
     where a pixel is lit in 4 photos or more (and, given ``max_misfit``, where the Lambertian model's RMS misfit
     over the photos that light it is at most that share of its mean brightness), the networks' normals
-    ``network`` elsewhere. ``positions`` (K, 3):
-    the lamps' positions on the framing plane's world units (near lamps): each pixel then gets its own direction
-    toward each lamp and the irradiance falls off with the squared distance. They are both the start and the prior
-    of the per-pixel stage. Returns (normals, report: ``solved_fraction``); ``report`` given: reused (a
-    downsampled copy). Pixels are solved ``chunk`` at a time."""
-    from matcap.refine.linear import solve_normals
+    ``network`` elsewhere. ``positions`` (K, 3): the lamps' positions on the framing plane's world units (near
+    lamps): each pixel then gets its own direction toward each lamp and the irradiance falls off with the squared
+    distance. They are both the start and the prior of the per-pixel stage. Returns (normals, report:
+    ``solved_fraction``); ``report`` given: reused (a downsampled copy). Pixels are solved ``chunk`` at a time."""
+    from matcap.refine.linear import lambertian_shading, solve_normals
 
     rows, cols = np.nonzero(mask)
     start = network.copy()
@@ -601,8 +600,7 @@ def _photo_normals(obs, mask, network, s_lum, report=None, positions=None, chunk
         lum = _luminance(obs, r, c)
         n, albedo, solved = solve_normals(lum, lights, network[r, c])
         if max_misfit is not None:
-            unit = np.einsum("kpi,pi->kp", lights, n) if lights.ndim == 3 else lights @ n.T
-            shade = np.clip(unit, 0.0, None) * albedo[None]
+            shade = np.clip(lambertian_shading(lights, n), 0.0, None) * albedo[None]
             lit = shade > 0
             misfit = np.sqrt(((lum - shade) ** 2 * lit).sum(0) / np.maximum(lit.sum(0), 1))
             solved &= misfit <= max_misfit * np.maximum(lum.mean(0), 1e-6)

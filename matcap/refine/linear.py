@@ -90,6 +90,12 @@ def _outer_sum(w: np.ndarray, v: np.ndarray) -> np.ndarray:
     return (w @ outer).reshape(-1, 3, 3)
 
 
+def lambertian_shading(lights: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(K, P) ``lights`` · ``b``, unclipped: lights (K, 3) irradiance times direction, or (K, P, 3) one such vector
+    per pixel; b (P, 3) albedo times normal (or a unit normal: the shading per unit albedo)."""
+    return np.einsum("kpi,pi->kp", lights, b) if lights.ndim == 3 else lights @ b.T
+
+
 def _weights(y: np.ndarray, shading: np.ndarray, c: float, shadow: float) -> np.ndarray:
     res = y - shading
     w = 1.0 / (1.0 + (res / c) ** 2)
@@ -187,11 +193,10 @@ def solve_normals(luminance: np.ndarray, lights: np.ndarray, normal: np.ndarray,
     y = np.asarray(luminance, np.float64)
     s = np.asarray(lights, np.float64)
     n0 = np.asarray(normal, np.float64)
+    shade = lambda b: lambertian_shading(s, b)  # noqa: E731
     if s.ndim == 3:
-        shade = lambda b: np.einsum("kpi,pi->kp", s, b)  # noqa: E731
         normal_eq = lambda w: (np.einsum("kp,kpi,kpj->pij", w, s, s), np.einsum("kp,kp,kpi->pi", w, y, s))  # noqa
     else:
-        shade = lambda b: s @ b.T  # noqa: E731
         normal_eq = lambda w: (_outer_sum(w.T, s), (w * y).T @ s)  # noqa: E731
     b = n0 * np.maximum(np.mean(y, axis=0) / np.maximum(np.mean(np.abs(shade(n0)), axis=0), 1e-9), 1e-6)[:, None]
     w = _weights(y, shade(b), cauchy, shadow)
