@@ -1373,18 +1373,25 @@ class _Mixing:
     backdrop: Any
     cover_logit: Any
 
-    def mix(self, torch, pred: np.ndarray, sl: slice, count: int) -> np.ndarray:
-        """``pred`` (K, n, 3) of the problem's pixels ``sl`` (of ``count``) with the outline's mixed in."""
+    def mixer(self, torch, count: int):
+        """A function (pred (K, n, 3) of the problem's pixels ``sl``, sl) -> pred with the outline's pixels mixed
+        in; ``count``: the problem's pixels. Takes the coverage as it is now (after the solve)."""
         where = np.full(count, -1, np.int64)
         where[self.index] = np.arange(len(self.index))
-        loc = where[sl]
-        sel = np.nonzero(loc >= 0)[0]
-        if len(sel) == 0:
+        cover = torch.sigmoid(self.cover_logit).cpu().numpy()
+        backdrop = self.backdrop.cpu().numpy()
+
+        def mix(pred: np.ndarray, sl: slice) -> np.ndarray:
+            loc = where[sl]
+            sel = np.nonzero(loc >= 0)[0]
+            if len(sel) == 0:
+                return pred
+            a = cover[loc[sel]][None, :, None]
+            pred = pred.copy()
+            pred[:, sel] = a * pred[:, sel] + (1.0 - a) * backdrop[:, loc[sel]]
             return pred
-        cover = torch.sigmoid(self.cover_logit).cpu().numpy()[loc[sel]][None, :, None]
-        pred = pred.copy()
-        pred[:, sel] = cover * pred[:, sel] + (1.0 - cover) * self.backdrop.cpu().numpy()[:, loc[sel]]
-        return pred
+
+        return mix
 
 
 def _outline_record(torch, mixing: "_Mixing | None") -> dict[str, Any]:
@@ -1481,12 +1488,13 @@ def _outputs(torch, full: _Problem, px, lights, s: RefineSettings, scale: float,
     squared = np.zeros(k_count, np.float64)  # per photo: the sum of squared residuals
     peaks = np.zeros((k_count, len(full)), np.float32)  # per photo and pixel: the brightest channel observed
     shadowed, ambient, direct = 0, 0.0, 0.0
+    mix = None if mixing is None else mixing.mixer(torch, len(full))
     for i in range(0, len(full), s.pixels.chunk):
         sl = slice(i, i + s.pixels.chunk)
         part, part_px = full.part(sl), px.take(sl)
         pred = _predict(torch, part, part_px, lights, s)  # (K, n, 3) fit units
-        if mixing is not None:
-            pred = mixing.mix(torch, pred, sl, len(full))
+        if mix is not None:
+            pred = mix(pred, sl)
         obs_px = part.obs.cpu().numpy()
         err = pred - obs_px
         upper = part.upper.cpu().numpy()
