@@ -188,7 +188,8 @@ class PixelStageSettings:
     fine_iters: int = 20
     """Iterations at full size."""
     tol: float = 1e-4
-    """A pixel is done once two iterations in a row lowered its loss by less than this share of it."""
+    """A pixel is done once two iterations in a row lowered its loss by less than this share of it (a rejected
+    step counts where the Gauss-Newton model promises less: :func:`matcap.refine.solve.levenberg_marquardt`)."""
     lm_observations: int = 262144
     """Pixels x photos per chunk of the solve (its Jacobians' memory grows with both)."""
     chunk: int = 32768

@@ -84,9 +84,11 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
     ``2 weight / (scale^2 + r^2)`` (the Cauchy loss's IRLS weights, so the step is a descent direction) damped by
     ``lambda * diag`` (Marquardt), one trial step; a problem keeps the step only if its loss went down (then
     lambda / 3, else lambda * 4, per problem).
-    A problem whose loss went down by at most ``tol`` of itself in two iterations in a row (steps that gained
-    nothing, or rejected with lambda >= LAM_DONE) is done and drops out: later iterations cost only what still
-    moves.
+    A problem whose loss went down by at most ``tol`` of itself in two iterations in a row is done and drops out,
+    so that later iterations cost only what still moves. Such an iteration is an accepted step that gained that
+    little, or a rejected one where the undamped Gauss-Newton step promises that little by the quadratic model
+    (half the Newton decrement squared: the problem sits at its minimum, and rounding rejected the step) or where
+    lambda has grown to LAM_DONE.
     ``on_step(mean loss)`` after each iteration.
 
     jacobian: (theta (n, P), rows) -> (robust (n, M), quadratic (n, Q), [d robust / d theta_j (n, M)] * P,
@@ -136,6 +138,9 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
                 hess[:, i, j] = v
                 hess[:, j, i] = v
         diag = torch.diagonal(hess, dim1=1, dim2=2).clone()
+        hess[:, eye, eye] = diag + 1e-6
+        # what the undamped Gauss-Newton step would gain by the quadratic model (half the Newton decrement squared)
+        model_gain = 0.5 * (grad * cholesky_solve(hess, grad)).sum(1)
         lam_a = lam[active]
         hess[:, eye, eye] = diag * (1.0 + lam_a[:, None]) + 1e-6
         trial = th - cholesky_solve(hess, grad)
@@ -150,7 +155,7 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
         lam[active] = lam_a
         # done: a step that gained (almost) nothing, or rejected once the damping is large (a small step
         # rejected is only a step too long)
-        stalled = ((old - new) <= tol * old) & (better | (lam_a >= LAM_DONE))
+        stalled = ((old - new) <= tol * old) & (better | (lam_a >= LAM_DONE) | (model_gain <= tol * old))
         stalls[active] = torch.where(stalled, stalls[active] + 1, torch.zeros_like(stalls[active]))
         active = active[stalls[active] < 2]
         if on_step is not None:
