@@ -138,9 +138,6 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
                 hess[:, i, j] = v
                 hess[:, j, i] = v
         diag = torch.diagonal(hess, dim1=1, dim2=2).clone()
-        hess[:, eye, eye] = diag + 1e-6
-        # what the undamped Gauss-Newton step would gain by the quadratic model (half the Newton decrement squared)
-        model_gain = 0.5 * (grad * cholesky_solve(hess, grad)).sum(1)
         lam_a = lam[active]
         hess[:, eye, eye] = diag * (1.0 + lam_a[:, None]) + 1e-6
         trial = th - cholesky_solve(hess, grad)
@@ -153,9 +150,17 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
         loss[active] = new
         lam_a = torch.where(better, lam_a / 3.0, lam_a * 4.0).clamp(1e-6, 1e6)
         lam[active] = lam_a
-        # done: a step that gained (almost) nothing, or rejected once the damping is large (a small step
-        # rejected is only a step too long)
-        stalled = ((old - new) <= tol * old) & (better | (lam_a >= LAM_DONE) | (model_gain <= tol * old))
+        # done: a step that gained (almost) nothing, or a rejected one where the undamped Gauss-Newton step
+        # promises nothing by the quadratic model (half the Newton decrement squared: the problem sits at its
+        # minimum) or once the damping is large (a small step rejected is only a step too long)
+        at_minimum = torch.zeros_like(better)
+        rejected = torch.nonzero(~better).squeeze(1)
+        if len(rejected):
+            h_r = hess[rejected]
+            h_r[:, eye, eye] = diag[rejected] + 1e-6
+            g_r = grad[rejected]
+            at_minimum[rejected] = 0.5 * (g_r * cholesky_solve(h_r, g_r)).sum(1) <= tol * old[rejected]
+        stalled = ((old - new) <= tol * old) & (better | (lam_a >= LAM_DONE) | at_minimum)
         stalls[active] = torch.where(stalled, stalls[active] + 1, torch.zeros_like(stalls[active]))
         active = active[stalls[active] < 2]
         if on_step is not None:
