@@ -3,13 +3,18 @@
     python benchmarks/matte_ball_check.py [--side 192] [--seeds 0,1,2] [--threads 1] [--set KEY=VALUE ...]
     python benchmarks/matte_ball_check.py --unequal 0          # lamps of equal power
     python benchmarks/matte_ball_check.py --brdf principled    # rendered with the fit's own model (a control)
+    python benchmarks/matte_ball_check.py --capture ../shared/data/captures/uw_gray --max-side 160   # a real ball
 
 A Lambertian sphere (:func:`matcap.refine.synthetic.matte_ball`: a DiLiGenT-ball-like capture, 16 distant lamps
 within 45 degrees of the view axis, lamps of unequal power (``--unequal``), a slightly varying grey-brown albedo, a
 weak sky-like ambient, photon and read noise, 16-bit linear PNGs, attached shadows, no cast shadows) is written to
 a capture folder and run through the bundled networks (``matcap.capture.estimate``, the "before") and :func:`matcap.refine.refine` (the "after"). Prints a
 Markdown table: mean normal error against the analytic sphere (``analytic_sphere`` of the mask), light-direction
-error against the true lamps (median / max degrees), re-render PSNR, the check.
+error against the true lamps (median / max degrees), re-render PSNR, the check, and the fit given the true lamps
+(``lights.txt``: the known-lights fit).
+
+``--capture FOLDER`` (repeatable) runs photographed balls instead: a folder of photos whose mask is the ball's
+disc, with a ``lights.txt`` (the UW gray ball: 12 photos, 8-bit read as linear), shrunk to ``--max-side``.
 """
 from __future__ import annotations
 
@@ -34,14 +39,18 @@ def _settings(items):
     return refine_settings(argparse.Namespace(set=items))
 
 
-def run_ball(folder: Path, models, settings, true_dirs=None, cache: Path | None = None) -> dict:
-    """Networks then the fit on the capture in ``folder``: {network, fit, light_median, light_max, psnr, report}."""
+def run_ball(folder: Path, models, settings, true_dirs=None, cache: Path | None = None,
+             max_side: int | None = None) -> dict:
+    """Networks then the fit on the capture in ``folder`` (photos shrunk to ``max_side``), lights estimated and,
+    where ``folder`` has a ``lights.txt``, given: {network, fit, fit_known, light_median, light_max, psnr, report}."""
     from matcap.capture import estimate, load_capture
     from matcap.evaluation.metrics import analytic_sphere
     from matcap.refine import refine
     from scenes.materialmaps import MaterialMaps
 
-    cap = load_capture(folder, linear=True)
+    from matcap.lightfiles import read_light_file
+
+    cap = load_capture(folder, linear=True, max_side=max_side)
     if cache is not None and cache.exists():
         z = np.load(cache)
         maps = MaterialMaps(**{k: z[k] for k in ("normal", "mask", "base_color", "roughness", "metallic")},
@@ -54,12 +63,37 @@ def run_ball(folder: Path, models, settings, true_dirs=None, cache: Path | None 
     truth, scored = analytic_sphere(cap.mask)
     scored = scored & maps.mask
     res = refine(cap.images, maps, settings)
+    fit_known = None
+    if (folder / "lights.txt").is_file():
+        known = read_light_file(folder / "lights.txt", [Path(f).name for f in cap.files])
+        fit_known = _mean_err(refine(cap.images, maps, settings, lights=known).maps.normal, truth, scored)
     out = {"network": _mean_err(maps.normal, truth, scored), "fit": _mean_err(res.maps.normal, truth, scored),
+           "fit_known": fit_known,
            "psnr": res.report["psnr_db_mean"], "report": res.report, "maps": maps, "images": cap.images}
     if true_dirs is not None:
         d = [_angle(e["direction"] if "direction" in e else e["position"], t) for e, t in zip(res.lights, true_dirs)]
         out["light_median"], out["light_max"] = float(np.median(d)), float(np.max(d))
     return out
+
+
+def _balls(args, root: Path):
+    """(name, folder, true light directions (K, 3), max_side) of every ball to run: the rendered seeds, written under
+    ``root``, or the ``--capture`` folders with their ``lights.txt``."""
+    if args.capture:
+        from matcap.capture import load_capture
+        from matcap.lightfiles import read_light_file
+
+        for c in args.capture:
+            folder = Path(c)
+            photos = [Path(f).name for f in load_capture(folder, linear=True, max_side=16).files]  # the fit's order
+            yield folder.name, folder, read_light_file(folder / "lights.txt", photos).directions, args.max_side
+        return
+    for seed in (int(s) for s in args.seeds.split(",")):
+        folder = root / (f"ball_{args.side}_s{seed}_u{args.unequal:g}_a{args.ambient:g}_p{args.max_polar:g}"
+                         + (f"_principled{args.roughness:g}" if args.brdf == "principled" else ""))
+        truth = matte_ball(folder, args.side, seed, unequal=args.unequal, ambient=args.ambient,
+                           max_polar_deg=args.max_polar, brdf=args.brdf, roughness=args.roughness)
+        yield f"seed {seed}", folder, truth["directions"], None
 
 
 def main(argv=None) -> int:
@@ -75,6 +109,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--set", action="append", help="RefineSettings group.field=value (repeatable)")
     ap.add_argument("--keep", default=None, help="write the captures (and cached network maps) under this folder")
+    ap.add_argument("--capture", action="append", help="a photographed ball's folder instead (repeatable)")
+    ap.add_argument("--max-side", type=int, default=160, help="--capture: photos shrunk to this side")
     args = ap.parse_args(argv)
     import torch
 
@@ -84,28 +120,28 @@ def main(argv=None) -> int:
 
     models = load_networks(None)
     settings = _settings(args.set)
-    print(f"matte ball {args.side}^2, 16 lamps within {args.max_polar:g} deg, power +-{args.unequal:g}, ambient "
-          f"{args.ambient:g}, 16-bit with photon + read noise; normals vs the analytic sphere (mean deg), lights vs "
-          f"the true lamps (median / max deg)")
-    print("| seed | network | fit | lights median | lights max | PSNR dB | check |")
-    print("|---|---:|---:|---:|---:|---:|---|")
+    if args.capture:
+        print(f"photographed balls (8-bit read as linear, --max-side {args.max_side}); normals vs the analytic sphere "
+              f"of the mask (mean deg), lights vs lights.txt (median / max deg)")
+    else:
+        print(f"matte ball {args.side}^2, 16 lamps within {args.max_polar:g} deg, power +-{args.unequal:g}, ambient "
+              f"{args.ambient:g}, 16-bit with photon + read noise; normals vs the analytic sphere (mean deg), lights "
+              f"vs the true lamps (median / max deg)")
+    print("| ball | network | fit | fit, lights given | lights median | lights max | PSNR dB | check |")
+    print("|---|---:|---:|---:|---:|---:|---:|---|")
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="matte_ball_"))
     rows = []
-    for seed in (int(s) for s in args.seeds.split(",")):
-        folder = root / (f"ball_{args.side}_s{seed}_u{args.unequal:g}_a{args.ambient:g}_p{args.max_polar:g}"
-                         + (f"_principled{args.roughness:g}" if args.brdf == "principled" else ""))
-        truth = matte_ball(folder, args.side, seed, unequal=args.unequal, ambient=args.ambient,
-                           max_polar_deg=args.max_polar, brdf=args.brdf, roughness=args.roughness)
+    for name, folder, dirs, max_side in _balls(args, root):
         cache = folder.parent / f"{folder.name}.maps.npz" if args.keep else None
         t0 = time.perf_counter()
-        r = run_ball(folder, models, settings, truth["directions"], cache)
+        r = run_ball(folder, models, settings, dirs, cache, max_side)
         lin = r["report"].get("linear") or {}
         check = "kept: " + str(lin.get("reason")) if r["report"]["kept_network_maps"] else "fitted"
-        rows.append((r["network"], r["fit"], r["light_median"], r["light_max"], r["psnr"]))
-        print(f"| {seed} | {r['network']:.2f} | {r['fit']:.2f} | {r['light_median']:.2f} | {r['light_max']:.2f} | "
-              f"{r['psnr']:.2f} | {check} ({time.perf_counter() - t0:.0f} s) |", flush=True)
+        rows.append((r["network"], r["fit"], r["fit_known"], r["light_median"], r["light_max"], r["psnr"]))
+        print(f"| {name} | {r['network']:.2f} | {r['fit']:.2f} | {r['fit_known']:.2f} | {r['light_median']:.2f} | "
+              f"{r['light_max']:.2f} | {r['psnr']:.2f} | {check} ({time.perf_counter() - t0:.0f} s) |", flush=True)
     a = np.array(rows).mean(0)
-    print(f"| **mean** | {a[0]:.2f} | {a[1]:.2f} | {a[2]:.2f} | {a[3]:.2f} | {a[4]:.2f} | |")
+    print(f"| **mean** | {a[0]:.2f} | {a[1]:.2f} | {a[2]:.2f} | {a[3]:.2f} | {a[4]:.2f} | {a[5]:.2f} | |")
     return 0
 
 
