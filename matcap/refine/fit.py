@@ -788,18 +788,22 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         given = given * inv_distance[:, None] ** 2
     luma = np.asarray(LUMA, np.float64)
     rows_l, cols_l = np.nonzero(mask_l)
-    irr = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, arr_l["normal"][rows_l, cols_l],
+    # a flat sample's photometric normals start from (and, where unsolved, stay at) the plane's own normal: the
+    # robust solve weighs each observation by its residual at the start, and a network normal far off on a
+    # swatch's corner left it there
+    guess = arrays["normal"] if flat is None else _plane_normals(mask)
+    guess_l = arr_l["normal"] if flat is None else _plane_normals(mask_l)
+    irr = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, guess_l[rows_l, cols_l],
                            None if given is None else given @ luma)
     s_lum = directions * irr[:, None]
     # a flat sample keeps the misfit Lambertian normals: the networks' are a poorer fallback on a swatch's relief
     misfit = s.priors.lambertian_misfit if flat is None else None
-    start, photo_report = _photo_normals(obs, mask, arrays["normal"], s_lum, positions=known.positions,
-                                         max_misfit=misfit)
+    start, photo_report = _photo_normals(obs, mask, guess, s_lum, positions=known.positions, max_misfit=misfit)
     arrays = dict(arrays, normal=start)
     if hw_l == (h, w):
         arr_l, start_l = arrays, start
     else:
-        start_l, _ = _photo_normals(obs_l, mask_l, arr_l["normal"], s_lum, photo_report, positions=known.positions,
+        start_l, _ = _photo_normals(obs_l, mask_l, guess_l, s_lum, photo_report, positions=known.positions,
                                     max_misfit=misfit)
         arr_l = dict(arr_l, normal=start_l)
     # the subsample leaves out the outline, whose pixels mix the object with what lies behind it
@@ -862,6 +866,13 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     }
     return RefineResult(out.maps, lights_to_entries(lights, scale), report, out.residual, ph.variation, ph.warning,
                         out.prediction)
+
+
+def _plane_normals(mask: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float32: every pixel of ``mask``'s frame facing the camera (+z), a flat sample's own normal."""
+    plane = np.zeros(mask.shape + (3,), np.float32)
+    plane[..., 2] = 1.0
+    return plane
 
 
 def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.ndarray,
