@@ -75,8 +75,9 @@ def stretched_sample(set_name: str, width: int, height: int):
 def error_blocks(normal: np.ndarray, truth: np.ndarray, blocks: int = 4) -> tuple[float, float]:
     """(median angular error, worst mean over a ``blocks`` x ``blocks`` grid of the image) in degrees: a failure
     confined to one part of the swatch shows in the second, the overall level in the first."""
-    cos = (normal * truth).sum(-1) / np.maximum(np.linalg.norm(normal, axis=-1) * np.linalg.norm(truth, axis=-1), 1e-12)
-    err = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    from matcap.evaluation.metrics import angular_error_map
+
+    err = angular_error_map(normal, truth)
     h, w = err.shape[0] // blocks * blocks, err.shape[1] // blocks * blocks
     grid = err[:h, :w].reshape(blocks, h // blocks, blocks, w // blocks).mean(axis=(1, 3))
     return float(np.median(err)), float(grid.max())

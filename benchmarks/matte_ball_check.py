@@ -63,13 +63,14 @@ def run_ball(folder: Path, models, settings, true_dirs=None, cache: Path | None 
     truth, scored = analytic_sphere(cap.mask)
     scored = scored & maps.mask
     res = refine(cap.images, maps, settings)
-    fit_known = None
+    fit_known = known = None
     if (folder / "lights.txt").is_file():
         known = read_light_file(folder / "lights.txt", [Path(f).name for f in cap.files])
         fit_known = _mean_err(refine(cap.images, maps, settings, lights=known).maps.normal, truth, scored)
     out = {"network": _mean_err(maps.normal, truth, scored), "fit": _mean_err(res.maps.normal, truth, scored),
            "fit_known": fit_known,
            "psnr": res.report["psnr_db_mean"], "report": res.report, "maps": maps, "images": cap.images}
+    true_dirs = known.directions if true_dirs is None and fit_known is not None else true_dirs
     if true_dirs is not None:
         d = [_angle(e["direction"] if "direction" in e else e["position"], t) for e, t in zip(res.lights, true_dirs)]
         out["light_median"], out["light_max"] = float(np.median(d)), float(np.max(d))
@@ -77,16 +78,11 @@ def run_ball(folder: Path, models, settings, true_dirs=None, cache: Path | None 
 
 
 def _balls(args, root: Path):
-    """(name, folder, true light directions (K, 3), max_side) of every ball to run: the rendered seeds, written under
+    """(name, folder, true light directions (K, 3) or None (those of its lights.txt), max_side) of every ball to run: the rendered seeds, written under
     ``root``, or the ``--capture`` folders with their ``lights.txt``."""
     if args.capture:
-        from matcap.capture import load_capture
-        from matcap.lightfiles import read_light_file
-
-        for c in args.capture:
-            folder = Path(c)
-            photos = [Path(f).name for f in load_capture(folder, linear=True, max_side=16).files]  # the fit's order
-            yield folder.name, folder, read_light_file(folder / "lights.txt", photos).directions, args.max_side
+        for c in args.capture:  # the true lamps are the lights.txt that run_ball reads
+            yield Path(c).name, Path(c), None, args.max_side
         return
     for seed in (int(s) for s in args.seeds.split(",")):
         folder = root / (f"ball_{args.side}_s{seed}_u{args.unequal:g}_a{args.ambient:g}_p{args.max_polar:g}"
