@@ -145,6 +145,23 @@ def test_bad_input_is_one_line(case, needle):
     assert "\n" not in str(exc.value)
 
 
+def test_held_out_light_fit(scene):
+    """One photo's light fitted to frozen true maps: the re-render matches it; a mask no wider than its outline
+    is one line."""
+    import dataclasses
+
+    from matcap.refine.fit import fit_light_only
+
+    truth, lights, photos = scene
+    out = fit_light_only(photos[3], truth)
+    assert out["psnr_db"] > 30.0 and _angle(out["light"]["direction"], lights[3].direction) < 3.0
+    speck = np.zeros(truth.mask.shape, bool)
+    speck[20:22, 20:22] = True
+    with pytest.raises(MatcapError, match="no wider than its outline") as exc:
+        fit_light_only(photos[3], dataclasses.replace(truth, mask=speck))
+    assert "\n" not in str(exc.value)
+
+
 def _detail(size: int, relief: float):
     """A texture set (size^2) whose normal map is smooth random relief (``relief`` 0: flat), grey base colour."""
     from scipy import ndimage

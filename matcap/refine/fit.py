@@ -1888,9 +1888,10 @@ def fit_light_only(image: np.ndarray, maps: MaterialMaps, settings: RefineSettin
 
     s = settings or RefineSettings()
     mask = np.asarray(maps.mask, bool)
-    check_inputs([image, image], mask)
-    mask = mask & ~outline_zone(mask, s.pixels.outline)
     stack = check_inputs([image, image], mask)[:1]
+    mask = mask & ~outline_zone(mask, s.pixels.outline)
+    if not mask.any():
+        raise MatcapError("the mask is no wider than its outline: no pixel to check the light on")
     device = torch.device(s.device)
     torch.manual_seed(s.seed)
     scale = 0.5 / float(stack[:, mask].mean())
