@@ -1,0 +1,234 @@
+"""Settings of the fit (:func:`matcap.refine.refine`), one dataclass per stage, nested in :class:`RefineSettings`
+(recorded in fit.json ``settings``; ``--set group.field=value`` on the benchmarks, ``RefineSettings.replace`` in
+code). Each field says what the knob means; docs/refine.md and docs/lights.md give the measurements behind the
+defaults."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from matcap.errors import MatcapError
+
+
+@dataclass
+class ModelSettings:
+    """What the fit models: the lights' kind, the fixed ambient, which maps move."""
+
+    light: str = "directional"
+    """Estimated lights: "directional", distant lights (where they fail to explain the photos, other candidate light
+    models are tried, see :class:`CandidateSettings`); "point", a lamp per photo whose distance the fit always finds.
+    Known lights keep the kind their file gives."""
+    ambient: str = "shared"
+    """"shared": one order-2 SH ambient for every photo (a fixed room light); "per-image"; "none"."""
+    fit_brdf: bool = True
+    """False: roughness and metallic stay the networks' (normals and base colour are still fitted)."""
+
+
+@dataclass
+class LossSettings:
+    """The data term, in the fit's units (the photos scaled so that their mean over the mask is 0.5)."""
+
+    cauchy: float = 0.15
+    """Scale of the Cauchy loss on the photo residuals: shadows, interreflections and highlights the model cannot
+    explain weigh less."""
+    shadow: float = 0.3
+    """With lights known (given, or from a ball), an observation darker than this share of the model's prediction
+    counts as cast shadow (the object hides the lamp from the point, which the model does not know): it bounds the
+    prediction from above only and adds no residual. 0: none. Lights the fit estimates (a flat sample's lamps
+    found from their falloff too) go without it: an error of the lights would pass for shadow. So does a flat
+    sample under given lights: a plane facing the camera hides no lamp from itself."""
+    variation_threshold: float = 0.08
+    """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
+    less, down to 0.1, and a warning names the share of such pixels)."""
+
+
+@dataclass
+class PriorSettings:
+    """Weights of the prior that holds every pixel near its start, per pixel, against a data term summed over the
+    photos (so more photos weigh more)."""
+
+    normal: float = 0.5
+    """Weight of |n - n_prior|^2 (n_prior: calibrated Lambertian normals from the photos where solved, else the
+    networks')."""
+    base: float = 0.5
+    """Weight of mean_c (log(b + 0.02) - log(b_net + 0.02))^2."""
+    rough: float = 0.5
+    """Weight of (r - r_net)^2."""
+    metal: float = 0.5
+    """Weight of (m - m_net)^2."""
+    lambertian_misfit: float = 0.3
+    """Known lights on an object: a pixel's calibrated Lambertian normal is its start and n_prior only where the
+    Lambertian model explains its photos to this relative misfit (RMS over the photos that light it / its mean
+    brightness); elsewhere (a highlight, metal, a cast shadow: not Lambertian) the networks' normal is. A flat
+    sample keeps its Lambertian normals."""
+    cover: float = 0.1
+    """Weight of (1 - coverage)^2 of a pixel of the mask's outline (see :attr:`PixelStageSettings.outline`)."""
+
+
+@dataclass
+class LightStageSettings:
+    """The light stage: Adam on the lights (and the maps of a pixel subsample) of a downsampled copy."""
+
+    side: int = 256
+    """The light fit runs on a copy whose longer side is at most this many pixels."""
+    pixels: int = 4096
+    """Pixels of that copy taking part in the light fit."""
+    known_pixels: int = 2048
+    """Pixels taking part where the directions are known (only the intensities and the ambient are fitted), drawn
+    off the mask's outline (``pixels.outline``), whose mixed pixels the light fit does not model."""
+    iters: int = 400
+    """Adam steps of the light fit (and of a near-lamp fit's distances)."""
+    kept_iters: int = 200
+    """Adam steps of the light fit where the maps are kept (the lights are fitted to the networks' maps)."""
+    known_iters: int = 50
+    """Adam steps of the light fit for distant lights whose directions and relative intensities are both given:
+    only one overall scale and the ambient move, a short adjustment of their least-squares start (the ambient
+    starts at zero). Other known lights (each photo's intensity fitted, or lamps at known positions) take
+    ``iters`` steps."""
+    lr: float = 0.02
+    """Adam step size of the light parameters (directions, log intensities, ambient, inverse distances)."""
+    lr_pixel: float = 0.05
+    """Adam step size of the subsample's map parameters during the light fit."""
+
+
+@dataclass
+class FactorizationSettings:
+    """Estimated lights: the Lambertian factorization and its bas-relief choice (:mod:`matcap.refine.linear`)."""
+
+    pixels: int = 20000
+    """Pixels of the light-fit copy used by the factorization (every occluding-contour pixel too)."""
+    contour_weight: float = 1.0
+    """Weight of the occluding contour's normals against the networks' in fixing the bas-relief."""
+    contour_nz: float = 0.1
+    """n_z given to contour pixels' normals (a pixel centre lies just inside the contour)."""
+    contour_gate: float = 0.6
+    """Mask-edge pixels count as occluding contour where the networks' n_z is below this."""
+    equal_lights: float = 150.0
+    """Weight of "every photo got about the same irradiance" (one lamp moved at a similar distance) against the
+    prior's misfit, relative to the prior's own, in choosing the bas-relief; 0 ignores it."""
+
+
+@dataclass
+class CheckSettings:
+    """Estimated lights: the factorization's check, which decides whether the photos may move the maps."""
+
+    residual: float = 0.05
+    """The factorization must explain the photos to this relative RMS ..."""
+    inliers: float = 0.85
+    """... with this share of inlier observations (these two: distant lights on a matte-like surface; only the
+    first candidate light model must pass them);"""
+    solved: float = 0.5
+    """... under the lights found, this share of the pixels must get a Lambertian normal facing the camera;"""
+    spread: float = 0.02
+    """... and the photos' third singular value must be at least this share of the first (a flat sample's
+    photos are nearly rank 1: its one normal cannot tell the lights apart)."""
+
+
+@dataclass
+class CandidateSettings:
+    """Estimated lights: the candidate light models tried after distant lights (or point lamps) where only the
+    residual / inliers part of the check failed, and the limits that accept them (:func:`_judge`)."""
+
+    near: bool = True
+    """Near lamps: fit lamps whose distances the fit finds, accepted where the conditions below hold."""
+    near_distance: float = 15.0
+    """... the median lamp within this many object radii (the radius of the disc as large as the mask);"""
+    near_ambient: float = 0.2
+    """... the fixed ambient at most this share of the object's irradiance (with light model "point": only this);"""
+    near_loss_ratio: float = 0.8
+    """... and the distances cut the light fit's loss to at most this share of what distant lamps reach ..."""
+    near_dark: float = 0.05
+    """... unless the fixed ambient is at most this share (a dark room, where highlights dominate the loss)."""
+    glossy: bool = True
+    """Glossy distant lamps (light model "directional" only): distant lamps under the Principled model alone,
+    accepted where the fixed ambient of that fit and of the near-lamp fit before it is small."""
+    glossy_ambient: float = 0.05
+    """... at most this share of the object's irradiance ..."""
+    glossy_ambient_far: float = 0.1
+    """... or at most this share where the near-lamp fit left the lamps ``far_distance`` object radii away or more."""
+    far_distance: float = 30.0
+    """Object radii beyond which a near-lamp fit's lamps count as far (a fixed room light lets them stay far)."""
+
+
+@dataclass
+class PixelStageSettings:
+    """The per-pixel stage: Levenberg-Marquardt per pixel with the lights fixed (:mod:`matcap.refine.solve`)."""
+
+    coarse_iters: int = 10
+    """Iterations at half size (skipped when the maps are 128 px or smaller)."""
+    fine_iters: int = 20
+    """Iterations at full size."""
+    tol: float = 1e-4
+    """A pixel is done once two iterations in a row lowered its loss by less than this share of it (a rejected
+    step counts where the Gauss-Newton model promises less: :func:`matcap.refine.solve.levenberg_marquardt`)."""
+    lm_observations: int = 262144
+    """Pixels x photos per chunk of the solve (its Jacobians' memory grows with both)."""
+    chunk: int = 32768
+    """Pixels per chunk of the re-render."""
+    outline: int = 1
+    """Width in pixels of the mask's outline (where the mask meets the photo, not the photo's border): a pixel
+    there can cover the object only in part (the lens's blur, a mask drawn a pixel wide), so it is fitted as a
+    mixture, coverage x the model + (1 - coverage) x what lies behind it (the mean of the photo's pixels just off
+    the mask), its coverage a free parameter. 0: every pixel is the object's alone."""
+    found_lamps_detail: float = 0.125
+    """A flat sample whose lamps were found from their falloff: its fitted normals keep only the tilts finer than
+    this share of the sample's width (those of a Gaussian of that sigma are taken out; the sample is a plane at
+    larger scales, and a found lamp's error tilts the fit smoothly across it). 0: keep every tilt."""
+
+
+@dataclass
+class RefineSettings:
+    """Settings of :func:`refine`, one group per stage (recorded nested in fit.json ``settings``)."""
+
+    model: ModelSettings = field(default_factory=ModelSettings)
+    loss: LossSettings = field(default_factory=LossSettings)
+    priors: PriorSettings = field(default_factory=PriorSettings)
+    lights: LightStageSettings = field(default_factory=LightStageSettings)
+    factorization: FactorizationSettings = field(default_factory=FactorizationSettings)
+    checks: CheckSettings = field(default_factory=CheckSettings)
+    candidates: CandidateSettings = field(default_factory=CandidateSettings)
+    pixels: PixelStageSettings = field(default_factory=PixelStageSettings)
+    seed: int = 0
+    """Seed of every random choice (pixel subsamples); the fit is repeatable bit for bit for a seed and device."""
+    device: str = "cpu"
+    """torch device."""
+
+    def replace(self, changes: dict[str, Any]) -> "RefineSettings":
+        """A copy with ``changes`` made: keys "group.field" (``{"lights.iters": 0}``) or "seed" / "device"; a
+        MatcapError names an unknown key."""
+        import dataclasses
+
+        groups: dict[str, dict[str, Any]] = {}
+        top: dict[str, Any] = {}
+        names = {f.name: f for f in dataclasses.fields(self)}
+        for key, value in changes.items():
+            group, _, name = key.partition(".")
+            if group not in names or bool(name) != dataclasses.is_dataclass(getattr(self, group)) or (
+                    name and name not in {f.name for f in dataclasses.fields(getattr(self, group))}):
+                raise MatcapError(f"no fit setting {key!r} (settings: {', '.join(_setting_keys(self))})")
+            if name:
+                groups.setdefault(group, {})[name] = value
+            else:
+                top[group] = value
+        nested = {g: dataclasses.replace(getattr(self, g), **v) for g, v in groups.items()}
+        return dataclasses.replace(self, **nested, **top)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "RefineSettings":
+        """The settings that :func:`dataclasses.asdict` (fit.json ``settings``) recorded as ``d``."""
+        import dataclasses
+
+        kinds = {f.name: f.default_factory for f in dataclasses.fields(cls)
+                 if f.default_factory is not dataclasses.MISSING}
+        return cls(**{k: kinds[k](**v) if k in kinds else v for k, v in d.items()})
+
+
+def _setting_keys(s: RefineSettings) -> list[str]:
+    """Every settings key, "group.field" or top-level, in the dataclasses' order."""
+    import dataclasses
+
+    out = []
+    for f in dataclasses.fields(s):
+        v = getattr(s, f.name)
+        out += [f"{f.name}.{g.name}" for g in dataclasses.fields(v)] if dataclasses.is_dataclass(v) else [f.name]
+    return out
