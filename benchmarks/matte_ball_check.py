@@ -70,7 +70,8 @@ def run_ball(folder: Path, models, settings, true_dirs=None, cache: Path | None 
     out = {"network": _mean_err(maps.normal, truth, scored), "fit": _mean_err(res.maps.normal, truth, scored),
            "fit_known": fit_known,
            "psnr": res.report["psnr_db_mean"], "report": res.report, "maps": maps, "images": cap.images}
-    true_dirs = known.directions if true_dirs is None and fit_known is not None else true_dirs
+    if true_dirs is None and known is not None:  # a photographed ball: its lights.txt
+        true_dirs = known.directions
     if true_dirs is not None:
         d = [_angle(e["direction"] if "direction" in e else e["position"], t) for e, t in zip(res.lights, true_dirs)]
         out["light_median"], out["light_max"] = float(np.median(d)), float(np.max(d))
@@ -78,8 +79,8 @@ def run_ball(folder: Path, models, settings, true_dirs=None, cache: Path | None 
 
 
 def _balls(args, root: Path):
-    """(name, folder, true light directions (K, 3) or None (those of its lights.txt), max_side) of every ball to run: the rendered seeds, written under
-    ``root``, or the ``--capture`` folders with their ``lights.txt``."""
+    """(name, folder, true light directions (K, 3) or None (those of its lights.txt), max_side) of every ball to
+    run: the rendered seeds, written under ``root``, or the ``--capture`` folders with their ``lights.txt``."""
     if args.capture:
         for c in args.capture:  # the true lamps are the lights.txt that run_ball reads
             yield Path(c).name, Path(c), None, args.max_side

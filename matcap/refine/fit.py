@@ -34,9 +34,7 @@ from typing import Any, Callable
 import numpy as np
 
 from matcap.errors import MatcapError
-from matcap.refine.settings import (CandidateSettings, CheckSettings, FactorizationSettings,  # noqa: F401
-                                    LightStageSettings, LossSettings, ModelSettings, PixelStageSettings,
-                                    PriorSettings, RefineSettings)
+from matcap.refine.settings import RefineSettings
 from scenes.materialmaps import MaterialMaps
 
 LUMA = (0.2126, 0.7152, 0.0722)
@@ -949,7 +947,8 @@ def _judge(c: Candidate, chk: _Check, earlier: list[Candidate], s: RefineSetting
 
 
 def _near_verdict(found: dict, s: RefineSettings) -> str | None:
-    """Why a near-lamp fit's lamps may not move the maps (one line), or None (:class:`CandidateSettings` ``near_*``).
+    """Why a near-lamp fit's lamps may not move the maps (one line), or None
+    (:class:`matcap.refine.settings.CandidateSettings` ``near_*``).
     ``found``: light_distance_radii (None: infinitely far), ambient_share, loss_ratio (None: not measured, with
     light model "point", where only the ambient counts, or where :func:`_needs_loss_ratio` says it cannot
     change the verdict)."""
@@ -1156,9 +1155,10 @@ def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: R
 
 @dataclass
 class _Mixing:
-    """The pixels of the mask's outline (:attr:`PixelStageSettings.outline`), each fitted as coverage x the model
-    + (1 - coverage) x what lies behind it: index (M,) int64 into the problem's pixels; backdrop (K, M, 3) torch,
-    fit units; cover_logit (M,) torch, their coverage as a logit (updated by the solve)."""
+    """The pixels of the mask's outline (:attr:`matcap.refine.settings.PixelStageSettings.outline`), each fitted
+    as coverage x the model + (1 - coverage) x what lies behind it: index (M,) int64 into the problem's pixels;
+    backdrop (K, M, 3) torch, fit units; cover_logit (M,) torch, their coverage as a logit (updated by the
+    solve)."""
 
     index: np.ndarray
     backdrop: Any
