@@ -949,7 +949,10 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     from matcap.refine.outputs import write_refine_outputs
 
     s = settings if settings is not None else RefineSettings(seed=seed, device=device)
-    held = {f"priors.{'metal' if k == 'metallic' else 'rough'}": 1e4 for k in (constants or {})}
+    held: dict[str, float | int] = {f"priors.{'metal' if k == 'metallic' else 'rough'}": 1e4
+                                     for k in (constants or {})}
+    if "roughness" in (constants or {}):
+        held["roughness.iters"] = 0  # no roughness to choose
     if held:  # constant maps stay where the caller put them
         s = s.replace(held)
     result = refine(images, maps, s, progress=progress, lights=lights, flat=flat)

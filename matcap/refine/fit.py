@@ -533,7 +533,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     every photo are fitted, first by least squares, then jointly with a subsample's maps under the Principled
     model (``lights.known_iters`` or ``lights.iters`` Adam steps); the start normals come from
     semi-calibrated Lambertian least squares (:func:`known_irradiance`); (2) the per-pixel solve
-    (:func:`_solve_maps`) from calibrated photometric-stereo normals; (3) outputs. With the lights known there is
+    (:func:`_solve_maps`) from calibrated photometric-stereo normals, then, on a flat sample, the roughness stage
+    (:func:`_roughness_stage`); (3) outputs. With the lights known there is
     no bas-relief family to choose from, so nothing is gated: the maps are always the fitted ones. ``flat``: what
     :func:`matcap.refine.flat.flat_lights` found (empty where the lights were given), recorded in fit.json as
     ``flat``.
@@ -608,6 +609,11 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     t0 = time.perf_counter()
     full, px_full, mixing, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
                                             s.pixels.coarse_iters, s.pixels.fine_iters, shadow=shadow)
+    choice = None
+    if flat is not None and s.roughness.iters > 0 and s.model.fit_brdf:
+        t_r = time.perf_counter()
+        px_full, choice = _roughness_stage(torch, full, px_full, lights, s, bar, mixing)
+        timings["roughness_s"] = time.perf_counter() - t_r
     detail = s.pixels.found_lamps_detail if known.source == "estimated" else 0.0
     if detail > 0:
         px_full = _plane_detail(torch, full, px_full, mask, detail)
@@ -625,7 +631,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "psnr_db": [round(p, 3) for p in out.psnr],
         "psnr_db_mean": round(float(np.mean(out.psnr)), 3),
         "residual_mean": round(float(np.nanmean(out.residual)), 5),
-        "iterations": {"lights": light_iters, **iters_done},
+        "iterations": {"lights": light_iters, **iters_done, "roughness": s.roughness.iters if choice else 0},
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(out.normal_change_deg, 3),
@@ -637,12 +643,92 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "ambient_share": round(out.ambient_share, 4),
         "cast_shadow_share": round(out.shadowed_share, 4),
         "outline": _outline_record(torch, mixing),
+        "roughness": None if choice is None else choice.record(),
         "smooth_tilt_removed_sigma_widths": detail or None,
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
     }
     return RefineResult(out.maps, lights_to_entries(lights, scale), report, out.residual, ph.variation, ph.warning,
                         out.prediction)
+
+
+def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, mixing: "_Mixing | None"):
+    """A flat sample with known lights: every pixel's roughness chosen among the values its photos allow
+    (:func:`matcap.refine.roughness.choose_roughness`, from the fitted normals, base colour and metallic), then
+    the per-pixel solve again for the pixels whose roughness the choice moved by more than ``roughness.moved`` (a
+    factor), from the chosen roughness held by a prior of weight ``roughness.hold``; the others keep their fit.
+    Returns (the new :class:`PixelParams`, the :class:`matcap.refine.roughness.RoughnessChoice`)."""
+    from matcap.refine.roughness import choose_roughness
+
+    r = s.roughness
+    with torch.no_grad():
+        normal, base, rough, metal = px.normal(), px.base(), px.rough(), px.metal()
+    costs = _grid_costs_parallel(torch, full, normal, base, rough, metal, lights, r)
+    choice = choose_roughness(costs, base.cpu().numpy(), rough.cpu().numpy(), r, s.seed)
+    moved = np.abs(np.log(np.maximum(choice.rough, 1e-3)) - np.log(np.maximum(rough.cpu().numpy(), 1e-3))) > np.log(
+        r.moved)
+    out = [t.detach().clone() for t in px.tensors()]
+    pixels = np.flatnonzero(moved)
+    if len(pixels):
+        _resolve(torch, full, px, out, pixels, choice.rough[pixels], r.hold, lights, s, bar, mixing)
+    from matcap.refine.model import PixelParams
+
+    return PixelParams(*out), choice
+
+
+def _resolve(torch, full: _Problem, px, out: list, pixels: np.ndarray, rough: np.ndarray, weight: float, lights,
+             s: RefineSettings, bar, mixing: "_Mixing | None") -> None:
+    """The per-pixel solve of ``full``'s pixels ``pixels`` (M,) again (``roughness.iters`` iterations), from ``px``
+    with their roughness ``rough`` (M,), which is also their prior's, of weight ``weight``; written into ``out``
+    (:class:`PixelParams` tensors) and, for the outline's pixels among them, ``mixing``'s coverage."""
+    import dataclasses
+
+    from matcap.refine.model import PixelParams, _logit
+
+    sub = full.part(pixels)
+    sub.r0 = torch.from_numpy(np.ascontiguousarray(rough, np.float32)).to(full.r0.device)
+    idx = torch.from_numpy(pixels).to(full.r0.device)
+    start = PixelParams(px.grad[idx], px.base_logit[idx], _logit(sub.r0.clamp(0.03, 0.97)), px.metal_logit[idx])
+    sub_mixing, keep = None, None
+    if mixing is not None:  # the outline's pixels among them, indexed within the subset
+        where = np.full(len(full), -1, np.int64)
+        where[pixels] = np.arange(len(pixels))
+        found = np.flatnonzero(where[mixing.index] >= 0)
+        if len(found):
+            keep = torch.from_numpy(found).to(full.r0.device)
+            sub_mixing = _Mixing(where[mixing.index[found]], mixing.backdrop[:, keep], mixing.cover_logit[keep].clone())
+    held = dataclasses.replace(s, priors=dataclasses.replace(s.priors, rough=weight))
+    solved = _solve_pixels(torch, sub, start, lights, held, s.loss.cauchy, s.roughness.iters, bar, "roughness",
+                           sub_mixing)
+    for o, t in zip(out, solved.tensors()):
+        o[idx] = t
+    if sub_mixing is not None:
+        mixing.cover_logit[keep] = sub_mixing.cover_logit
+
+
+def _grid_costs_parallel(torch, full: _Problem, normal, base, rough, metal, lights, r) -> np.ndarray:
+    """:func:`matcap.refine.roughness.grid_costs` of every pixel of ``full`` (its fitted maps ``normal``, ``base``,
+    ``rough``, ``metal``: the observations they leave in cast shadow stay out at every roughness), chunk by chunk
+    on as many threads as torch was given, each of them with one-thread operations (as :func:`_solve_pixels`)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from matcap.refine.roughness import grid_costs
+
+    step = 8192
+    parts = [slice(i, min(i + step, len(full))) for i in range(0, len(full), step)]
+
+    def cost(sl):
+        obs, upper = full.obs[:, sl], full.upper[:, sl]
+        with torch.no_grad():  # cast shadow as the fit left it (upper finite and exceeded), out at every roughness
+            res = _shade(lights, full.pos[sl], normal[sl], base[sl], rough[sl], metal[sl]) - obs
+        inf = torch.full_like(upper, float("inf"))
+        upper = torch.where(upper == 0, upper, torch.where((upper < inf) & (res > upper), -inf, inf))
+        return grid_costs(torch, obs, upper, full.pos[sl], normal[sl], metal[sl], lights, r.grid, r.noise, step)
+
+    with _one_thread(torch) as threads:
+        with ThreadPoolExecutor(_workers(threads), initializer=torch.set_num_threads, initargs=(1,)) as pool:
+            out = list(pool.map(cost, parts))
+    return np.concatenate(out, axis=1) if out else np.zeros((len(r.grid), 0), np.float32)
 
 
 def _plane_normals(mask: np.ndarray) -> np.ndarray:

@@ -175,6 +175,12 @@ def shade_fast(normal, base, rough, metal, wo, irradiance, sh, specular: float =
     return _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, None)[0]
 
 
+def shade_base_linear(normal, rough, metal, wo, irradiance, sh, specular: float = 0.5):
+    """:func:`shade_fast` as ``const + base * per_base``: it is linear in the base colour at a fixed normal,
+    roughness and metallic. Shapes as :func:`shade_fast` (no ``base``); returns (const, per_base), each (K, N, 3)."""
+    return _shade_terms(normal, None, rough, metal, wo, irradiance, sh, specular, None)
+
+
 def shade_jacobian(normal, base, rough, metal, wo, irradiance, sh, tangents, specular: float = 0.5):
     """:func:`shade_fast` and its derivatives, in closed form (the per-pixel solve's Jacobian).
 
@@ -256,6 +262,13 @@ def _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, tange
     zero = torch.zeros((), dtype=co.dtype, device=co.device)
     diff_b = torch.where(valid, diff * bump, zero)
     spec_b = torch.where(valid, spec * bump, zero)
+    if base is None:  # shade_base_linear: the model's two parts, constant and proportional to the base colour
+        basis = sh_basis(normal)
+        sh_e = _sh_sum(basis, sh)
+        mw = metal[None] * w_d
+        const = (spec_b * ((1.0 - metal)[None] * f_die + mw))[..., None] * irradiance
+        per_base = (diff_b + spec_b * (metal[None] - mw))[..., None] * irradiance
+        return const, per_base + sh_e * ((1.0 - metal) / math.pi)[None, :, None]
     # colour: diffuse * base + spec * F, F = (1 - m) F_dielectric + m Schlick(base)
     fres = ((1.0 - metal)[None] * f_die)[..., None] + metal[None, :, None] * (
         base[None] + (1.0 - base)[None] * w_d[..., None])

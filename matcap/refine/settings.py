@@ -177,6 +177,35 @@ class PixelStageSettings:
 
 
 @dataclass
+class RoughnessSettings:
+    """A flat sample with known lights (given, or found from their falloff): the roughness stage
+    (:mod:`matcap.refine.roughness`), after the per-pixel solve, then a last solve with the chosen roughness held."""
+
+    iters: int = 10
+    """Levenberg-Marquardt iterations of the last solve; 0 skips the stage (roughness as the per-pixel solve left
+    it)."""
+    grid: tuple[float, ...] = (0.04, 0.06, 0.08, 0.1, 0.13, 0.16, 0.2, 0.25, 0.3, 0.36, 0.43, 0.5, 0.58, 0.66,
+                               0.75, 0.85, 0.95)
+    """Roughness values each pixel's photos are tried at."""
+    noise: float = 0.04
+    """Scale of a residual in the stage's cost, as a share of the pixel's mean brightness."""
+    tolerance: float = 8.0
+    """A roughness is allowed where its cost is within this of the pixel's lowest (cost: sum over photos and
+    channels of log(1 + (residual / scale)^2))."""
+    width: float = 1.5
+    """A pixel decides its own roughness where its allowed values span at most this factor."""
+    groups: int = 8
+    """Material groups (k-means of the fitted base colour) whose decided pixels set the others' roughness."""
+    min_decided: int = 20
+    """A group with fewer decided pixels takes the typical roughness of every decided pixel."""
+    hold: float = 5.0
+    """Weight of (r - r_chosen)^2 in the last solve (in place of ``priors.rough``)."""
+    moved: float = 1.25
+    """The last solve takes the pixels whose chosen roughness differs from the fitted one by more than this
+    factor; the others keep their fit."""
+
+
+@dataclass
 class RefineSettings:
     """Settings of :func:`refine`, one group per stage (recorded nested in fit.json ``settings``)."""
 
@@ -188,6 +217,7 @@ class RefineSettings:
     checks: CheckSettings = field(default_factory=CheckSettings)
     candidates: CandidateSettings = field(default_factory=CandidateSettings)
     pixels: PixelStageSettings = field(default_factory=PixelStageSettings)
+    roughness: RoughnessSettings = field(default_factory=RoughnessSettings)
     seed: int = 0
     """Seed of every random choice (pixel subsamples); the fit is repeatable bit for bit for a seed and device."""
     device: str = "cpu"

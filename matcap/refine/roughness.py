@@ -1,0 +1,161 @@
+"""The roughness stage of a flat sample's fit with known lights: each pixel's roughness chosen among the values its
+photos allow, by what the pixels of the same material that saw a highlight say.
+
+A pixel whose photos show no highlight is explained about equally well by a narrow lobe (the highlight fell
+between the lamps) and by a broad, faint one (its shape taken up by the base colour); between the two lies a
+range that explains them worse. The per-pixel solve, started from the networks' roughness, stays in whichever of
+the two it starts nearer. This stage looks at every pixel's whole range instead: it tries each value of a grid
+(the base colour solved in closed form, the normal and metallic as fitted), keeps the values within a tolerance of
+the best, and where those span a narrow range the pixel decides its own roughness. Pixels that do not are given
+the allowed value nearest the typical decided roughness of their material (pixels grouped by fitted base colour).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from matcap.refine.settings import RoughnessSettings
+
+
+@dataclass
+class RoughnessChoice:
+    """What :func:`choose_roughness` chose: ``rough`` (N,) float32, each pixel's roughness (0-1);
+    ``decided`` (N,) bool, the pixels whose own photos allow only a narrow range; ``groups`` (N,) int, each
+    pixel's material group; ``targets`` (G,) float, each group's typical decided roughness (NaN: the group had
+    too few decided pixels and took the sample's)."""
+
+    rough: np.ndarray
+    decided: np.ndarray
+    groups: np.ndarray
+    targets: np.ndarray
+
+    def record(self) -> dict[str, Any]:
+        """The choice as fit.json's ``roughness`` entry."""
+        return {
+            "decided_share": round(float(self.decided.mean()), 4) if len(self.decided) else 0.0,
+            "group_targets": [None if not np.isfinite(t) else round(float(t), 4) for t in self.targets],
+        }
+
+
+def grid_costs(torch, obs, upper, pos, normal, metal, lights, grid, noise: float, chunk: int) -> np.ndarray:
+    """The data cost of every pixel at every roughness of ``grid``, its base colour solved in closed form.
+
+    obs (K, N, 3) photos in fit units; upper (K, N, 3) the residual above which an observation adds none (0 where
+    clipped, -inf where left out, +inf elsewhere); pos (N, 3) plane positions; normal (N, 3), metal (N,)
+    torch, held (and, where a pixel's is above 0.1, also none: the lower cost counts); lights:
+    :class:`matcap.refine.model.LightParams`. The model is linear in the base colour at a fixed normal, roughness
+    and metallic, so each channel's base colour is one least-squares division (over the observations not
+    clipped), clipped to 0-1. The caller decides cast shadows once, before (``upper`` -inf: the observation
+    adds nothing): a roughness that over-predicts an observation must not pass it off as shadow. Cost: sum over
+    photos and channels of log(1 + (residual / (noise x the pixel's mean observation))^2). Returns (len(grid), N)
+    float32.
+    """
+    n_px = obs.shape[1]
+    out = np.empty((len(grid), n_px), np.float32)
+    with torch.no_grad():
+        for i in range(0, n_px, chunk):
+            sl = slice(i, min(i + chunk, n_px))
+            o, up, nrm, m = obs[:, sl], upper[:, sl], normal[sl], metal[sl]
+            wo, irr = lights.incident(pos[sl])
+            used = (up > 0).to(o.dtype)  # a clipped observation bounds the model only from below
+            scale = (noise * o.mean(dim=(0, 2))).clamp(min=1e-4)[None, :, None]
+            q = torch.nonzero(m > 0.1).flatten()  # the pixels with some metallic: tried without it too
+            for g, r in enumerate(grid):
+                rv = torch.full_like(m, float(r))
+                cost = _cost(nrm, rv, m, wo, irr, lights.sh, o, up, used, scale)
+                if len(q):
+                    wo_q, irr_q = (wo, irr) if wo.shape[1] == 1 else (wo[:, q], irr[:, q])  # distant: shared
+                    none = _cost(nrm[q], rv[q], torch.zeros_like(m[q]), wo_q, irr_q, lights.sh, o[:, q], up[:, q],
+                                 used[:, q], scale[:, q])
+                    cost[q] = torch.minimum(cost[q], none)
+                out[g, sl] = cost.cpu().numpy()
+    return out
+
+
+def _cost(nrm, rv, m, wo, irr, sh, o, up, used, scale):
+    """(N,) the cost of :func:`grid_costs` at roughness ``rv`` and metallic ``m`` (N,), the base colour solved."""
+    from matcap.refine.model import shade_base_linear
+
+    p0, a = shade_base_linear(nrm, rv, m, wo, irr, sh)
+    b = ((used * a * (o - p0)).sum(0) / (used * a * a).sum(0).clamp(min=1e-12)).clamp(0.0, 1.0)
+    res = _zero_above(p0 + b[None] * a - o, up)
+    return (res / scale).square().log1p().sum(dim=(0, 2))
+
+
+def _zero_above(res, up):
+    """``res`` with the entries above ``up`` zeroed (a clipped observation the model exceeds, see ``upper``)."""
+    return res * (res <= up).to(res.dtype)
+
+
+def material_groups(base: np.ndarray, count: int, seed: int, sample: int = 20000, iters: int = 20) -> np.ndarray:
+    """(N,) int: each pixel's group, k-means of log(base colour + 0.02) (base (N, 3), 0-1) into at most ``count``
+    groups, its centres found on a random subsample of ``sample`` pixels (``seed``)."""
+    x = np.log(np.asarray(base, np.float64) + 0.02)
+    n = len(x)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    rng = np.random.default_rng(seed)
+    fit = x[rng.choice(n, size=min(n, sample), replace=False)]
+    centres = fit[rng.choice(len(fit), size=min(count, len(fit)), replace=False)]
+
+    def assign(pts: np.ndarray) -> np.ndarray:
+        return ((pts[:, None, :] - centres[None]) ** 2).sum(-1).argmin(1)
+
+    for _ in range(iters):
+        lab = assign(fit)
+        centres = np.array([fit[lab == j].mean(0) if (lab == j).any() else centres[j] for j in range(len(centres))])
+    return np.concatenate([assign(x[i:i + 65536]) for i in range(0, n, 65536)]) if n else np.zeros(0, np.int64)
+
+
+def _vertex(costs: np.ndarray, lg: np.ndarray) -> np.ndarray:
+    """(N,) log roughness at the vertex of the parabola through each pixel's lowest grid cost and its neighbours
+    (costs (G, N), lg (G,) the grid's log roughness); at the grid's ends, the end value."""
+    best = costs.argmin(axis=0)
+    i = np.clip(best, 1, len(lg) - 2)
+    cols = np.arange(costs.shape[1])
+    x0, x1, x2 = lg[i - 1], lg[i], lg[i + 1]
+    y0, y1, y2 = costs[i - 1, cols], costs[i, cols], costs[i + 1, cols]
+    num = (x1 - x0) ** 2 * (y1 - y2) - (x1 - x2) ** 2 * (y1 - y0)
+    den = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0)
+    safe = np.abs(den) > 1e-12
+    vertex = x1 - 0.5 * num / np.where(safe, den, 1.0)
+    vertex = np.where(safe, np.clip(vertex, x0, x2), x1)
+    return np.where((best == 0) | (best == len(lg) - 1), lg[best], vertex)
+
+
+def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s: RoughnessSettings,
+                     seed: int) -> RoughnessChoice:
+    """Each pixel's roughness from its grid costs (:func:`grid_costs`, (G, N)), its fitted base colour (N, 3) and
+    fitted roughness (N,).
+
+    A pixel's allowed values are the grid values within ``s.tolerance`` of its lowest cost; where they span at
+    most a factor ``s.width`` the pixel is decided, at the vertex of the parabola through its lowest cost and its
+    two neighbours (in log roughness, kept inside them). The others take the allowed value nearest (in log
+    roughness) their group's target: the median log roughness of the group's decided pixels where it has
+    ``s.min_decided`` of them, else of every decided pixel. Where no pixel is decided the fitted roughness stays.
+    """
+    grid = np.asarray(s.grid, np.float64)
+    lg = np.log(grid)[:, None]
+    n = costs.shape[1]
+    allowed = costs <= costs.min(axis=0, keepdims=True) + s.tolerance
+    lo = np.where(allowed, lg, np.inf).min(axis=0)
+    hi = np.where(allowed, lg, -np.inf).max(axis=0)
+    decided = (hi - lo) <= np.log(s.width) + 1e-9
+    groups = material_groups(base, s.groups, seed)
+    n_groups = int(groups.max()) + 1 if n else 0
+    targets = np.full(n_groups, np.nan)
+    if not decided.any():
+        return RoughnessChoice(np.asarray(fitted, np.float32), decided, groups, targets)
+    middle = np.where(decided, _vertex(costs, np.log(grid)), (lo + hi) / 2.0)
+    target = np.full(n, float(np.median(middle[decided])))
+    for j in range(n_groups):
+        own = (groups == j) & decided
+        if own.sum() >= s.min_decided:
+            targets[j] = float(np.exp(np.median(middle[own])))
+            target[groups == j] = np.log(targets[j])
+    nearest = np.where(allowed, np.abs(lg - target[None]), np.inf).argmin(axis=0)
+    rough = np.where(decided, np.exp(middle), grid[nearest]).astype(np.float32)
+    return RoughnessChoice(rough, decided, groups, targets)

@@ -1,0 +1,119 @@
+"""The roughness stage of a fit with known lights (:mod:`matcap.refine.roughness`): the choice among the values a
+pixel's photos allow, and a rendered two-material swatch whose glossy half the per-pixel solve alone leaves matte."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import shared_path
+
+from matcap.refine.roughness import choose_roughness, material_groups
+from matcap.refine.settings import RoughnessSettings
+
+GRID = RoughnessSettings().grid
+
+
+def _costs(n_px: int, allowed: list[float], sharp: float = 50.0) -> np.ndarray:
+    """(G, n_px) costs: 0 at the grid values in ``allowed``, ``sharp`` elsewhere."""
+    c = np.full((len(GRID), n_px), sharp, np.float32)
+    for v in allowed:
+        c[GRID.index(v)] = 0.0
+    return c
+
+
+def test_decided_pixels_keep_their_own_roughness_and_set_their_groups():
+    s = RoughnessSettings(min_decided=5)
+    # 40 red pixels decided at 0.1, 40 blue ones decided at 0.75; 20 of each ambiguous between 0.06 and 0.75
+    red, blue = np.array([0.8, 0.1, 0.1]), np.array([0.1, 0.1, 0.8])
+    costs = np.concatenate([_costs(40, [0.1]), _costs(40, [0.75]), _costs(20, [0.06, 0.75]),
+                            _costs(20, [0.06, 0.75])], axis=1)
+    base = np.concatenate([np.tile(red, (40, 1)), np.tile(blue, (40, 1)), np.tile(red, (20, 1)),
+                           np.tile(blue, (20, 1))])
+    choice = choose_roughness(costs, base, np.full(120, 0.5), s, seed=0)
+    assert choice.decided[:80].all() and not choice.decided[80:].any()
+    np.testing.assert_allclose(choice.rough[:40], 0.1, rtol=0.05)  # a parabola's vertex near the grid value
+    np.testing.assert_allclose(choice.rough[40:80], 0.75, rtol=0.05)
+    np.testing.assert_allclose(choice.rough[80:100], 0.06, rtol=1e-5)  # the red group's target is 0.1
+    np.testing.assert_allclose(choice.rough[100:], 0.75, rtol=1e-5)  # the blue group's is 0.75
+    assert choice.record()["decided_share"] == round(80 / 120, 4)
+
+
+def test_a_decided_pixel_lands_between_grid_values():
+    """A cost parabola in log roughness centred at 0.21, between the grid's 0.2 and 0.25: its vertex."""
+    lg = np.log(np.asarray(GRID))
+    costs = (400.0 * (lg - np.log(0.21)) ** 2)[:, None].astype(np.float32)
+    choice = choose_roughness(costs, np.full((1, 3), 0.5), np.full(1, 0.5), RoughnessSettings(), seed=0)
+    assert choice.decided[0] and abs(choice.rough[0] - 0.21) < 1e-3, choice.rough
+
+
+def test_no_decided_pixel_keeps_the_fitted_roughness():
+    costs = _costs(30, [0.06, 0.75])
+    fitted = np.linspace(0.2, 0.6, 30)
+    choice = choose_roughness(costs, np.random.default_rng(0).random((30, 3)), fitted, RoughnessSettings(), seed=0)
+    np.testing.assert_allclose(choice.rough, fitted, rtol=1e-6)
+    assert not choice.decided.any()
+
+
+def test_material_groups_split_two_colours():
+    base = np.concatenate([np.full((50, 3), 0.8), np.full((50, 3), 0.05)])
+    lab = material_groups(base, 2, seed=0)
+    assert len(set(lab[:50])) == 1 and len(set(lab[50:])) == 1 and lab[0] != lab[-1]
+
+
+@pytest.mark.slow
+def test_a_glossy_glaze_under_known_lamps_gets_its_roughness():
+    """The CC0 tea_set_01 texture set (a glaze of roughness about 0.09) as a 64-pixel flat sample, rendered by
+    Mitsuba under 16 lamps 1-3 widths away (benchmarks/flat_check.py's near lights, their file with intensities),
+    started from a network-like roughness 0.45: the per-pixel solve alone ends on a broad lobe; the stage finds
+    the glaze's."""
+    import sys
+
+    from matcap.lightfiles import KnownLights
+    from matcap.refine import RefineSettings, refine
+    from scenes.materialmaps import MaterialMaps
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import flat_check as F
+
+    truth, _ = F.load_sample(shared_path("data", "textures", "tea_set_01"), 64)
+    lamps = F.make_lights("near", 16, seed=0, size=64)
+    photos = F.render_photos(truth, lamps, spp=4)
+    pos = np.array([l.position for l in lamps])
+    known = KnownLights(pos / np.linalg.norm(pos, axis=1, keepdims=True), np.array([l.intensity for l in lamps]),
+                        "file", "test", "order", positions=pos)
+    shape = truth.mask.shape
+    start = MaterialMaps(normal=np.dstack([np.zeros(shape + (2,), np.float32), np.ones(shape + (1,), np.float32)]),
+                         mask=truth.mask, base_color=np.full(shape + (3,), 0.5, np.float32),
+                         roughness=np.full(shape, 0.45, np.float32), metallic=np.zeros(shape, np.float32))
+    rmse = {}
+    for iters in (0, RoughnessSettings().iters):
+        res = refine(photos, start, RefineSettings(seed=0).replace({"roughness.iters": iters}), lights=known,
+                     flat=True)
+        rmse[iters] = float(np.sqrt(((res.maps.roughness - truth.roughness) ** 2).mean()))
+    assert rmse[0] > 0.3, rmse  # measured 0.52
+    assert rmse[RoughnessSettings().iters] < 0.15, rmse  # measured 0.12
+
+
+def test_shade_base_linear_splits_the_model():
+    """shade_fast = const + base x per_base for any base colour, metallic or not, distant or point lights."""
+    import torch
+
+    from matcap.refine.model import LightParams, shade_base_linear, shade_fast
+
+    g = torch.Generator().manual_seed(0)
+    n_px, k = 400, 6
+    normal = torch.nn.functional.normalize(torch.randn(n_px, 3, generator=g) * 0.4 + torch.tensor([0.0, 0.0, 1.0]),
+                                           dim=-1)
+    base, rough, metal = torch.rand(n_px, 3, generator=g), torch.rand(n_px, generator=g), torch.rand(n_px, generator=g)
+    sh = torch.randn(1, 9, 3, generator=g) * 0.05
+    pos = torch.cat([torch.rand(n_px, 2, generator=g) * 2 - 1, torch.zeros(n_px, 1)], 1)
+    for kind, vec in (("directional", torch.randn(k, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 1.0])),
+                      ("point", torch.randn(k, 3, generator=g) + torch.tensor([0.0, 0.0, 4.0]))):
+        lights = LightParams(kind, vec, torch.zeros(k, 3), sh)
+        wo, irr = lights.incident(pos)
+        full = shade_fast(normal, base, rough, metal, wo, irr, sh)
+        const, per_base = shade_base_linear(normal, rough, metal, wo, irr, sh)
+        assert const.shape == per_base.shape == full.shape
+        torch.testing.assert_close(const + base[None] * per_base, full, rtol=1e-4, atol=1e-5)
