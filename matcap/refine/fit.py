@@ -663,7 +663,7 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     r = s.roughness
     with torch.no_grad():
         normal, base, rough, metal = px.normal(), px.base(), px.rough(), px.metal()
-    costs = _grid_costs_parallel(torch, full, normal, metal, lights, r)
+    costs = _grid_costs_parallel(torch, full, normal, base, rough, metal, lights, r)
     choice = choose_roughness(costs, base.cpu().numpy(), rough.cpu().numpy(), r, s.seed)
     moved = np.abs(np.log(np.maximum(choice.rough, 1e-3)) - np.log(np.maximum(rough.cpu().numpy(), 1e-3))) > np.log(
         r.moved)
@@ -706,10 +706,10 @@ def _resolve(torch, full: _Problem, px, out: list, pixels: np.ndarray, rough: np
         mixing.cover_logit[keep] = sub_mixing.cover_logit
 
 
-def _grid_costs_parallel(torch, full: _Problem, normal, metal, lights, r) -> np.ndarray:
-    """:func:`matcap.refine.roughness.grid_costs` of every pixel of ``full`` (a flat sample's: no cast-shadow
-    rule, so ``upper`` is 0 where clipped and infinite elsewhere), chunk by chunk on as many threads as torch was
-    given, each of them with one-thread operations (as :func:`_solve_pixels`)."""
+def _grid_costs_parallel(torch, full: _Problem, normal, base, rough, metal, lights, r) -> np.ndarray:
+    """:func:`matcap.refine.roughness.grid_costs` of every pixel of ``full`` (its fitted maps ``normal``, ``base``,
+    ``rough``, ``metal``: the observations they leave in cast shadow stay out at every roughness), chunk by chunk
+    on as many threads as torch was given, each of them with one-thread operations (as :func:`_solve_pixels`)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from matcap.refine.roughness import grid_costs
@@ -718,8 +718,12 @@ def _grid_costs_parallel(torch, full: _Problem, normal, metal, lights, r) -> np.
     parts = [slice(i, min(i + step, len(full))) for i in range(0, len(full), step)]
 
     def cost(sl):
-        return grid_costs(torch, full.obs[:, sl], full.upper[:, sl], full.pos[sl], normal[sl], metal[sl], lights,
-                          r.grid, r.noise, step)
+        obs, upper = full.obs[:, sl], full.upper[:, sl]
+        with torch.no_grad():  # cast shadow as the fit left it (upper finite and exceeded), out at every roughness
+            res = _shade(lights, full.pos[sl], normal[sl], base[sl], rough[sl], metal[sl]) - obs
+        inf = torch.full_like(upper, float("inf"))
+        upper = torch.where(upper == 0, upper, torch.where((upper < inf) & (res > upper), -inf, inf))
+        return grid_costs(torch, obs, upper, full.pos[sl], normal[sl], metal[sl], lights, r.grid, r.noise, step)
 
     with _one_thread(torch) as threads:
         with ThreadPoolExecutor(_workers(threads), initializer=torch.set_num_threads, initargs=(1,)) as pool:

@@ -44,12 +44,14 @@ def grid_costs(torch, obs, upper, pos, normal, metal, lights, grid, noise: float
     """The data cost of every pixel at every roughness of ``grid``, its base colour solved in closed form.
 
     obs (K, N, 3) photos in fit units; upper (K, N, 3) the residual above which an observation adds none (0 where
-    clipped, +inf elsewhere); pos (N, 3) plane positions; normal (N, 3), metal (N,)
+    clipped, -inf where left out, +inf elsewhere); pos (N, 3) plane positions; normal (N, 3), metal (N,)
     torch, held (and, where a pixel's is above 0.1, also none: the lower cost counts); lights:
     :class:`matcap.refine.model.LightParams`. The model is linear in the base colour at a fixed normal, roughness
     and metallic, so each channel's base colour is one least-squares division (over the observations not
-    clipped), clipped to 0-1. Cost: sum over photos and channels of log(1 + (residual / (noise x the pixel's mean
-    observation))^2). Returns (len(grid), N) float32.
+    clipped), clipped to 0-1. The caller decides cast shadows once, before (``upper`` -inf: the observation
+    adds nothing): a roughness that over-predicts an observation must not pass it off as shadow. Cost: sum over
+    photos and channels of log(1 + (residual / (noise x the pixel's mean observation))^2). Returns (len(grid), N)
+    float32.
     """
     n_px = obs.shape[1]
     out = np.empty((len(grid), n_px), np.float32)
