@@ -9,7 +9,7 @@ import pytest
 
 from conftest import shared_path
 
-from matcap.refine.roughness import choose_roughness, material_groups
+from matcap.refine.roughness import choose_roughness, follow_targets, material_groups, object_targets
 from matcap.refine.settings import RoughnessSettings
 
 GRID = RoughnessSettings().grid
@@ -54,6 +54,26 @@ def test_no_decided_pixel_keeps_the_fitted_roughness():
     choice = choose_roughness(costs, np.random.default_rng(0).random((30, 3)), fitted, RoughnessSettings(), seed=0)
     np.testing.assert_allclose(choice.rough, fitted, rtol=1e-6)
     assert not choice.decided.any()
+
+
+def test_an_objects_targets_come_only_from_its_own_decided_pixels():
+    s = RoughnessSettings(min_decided=5)
+    # group 0: 10 pixels decided at 0.3 and 10 ambiguous; group 1: 2 decided at 0.1 (too few) and 10 ambiguous
+    costs = np.concatenate([_costs(10, [0.3]), _costs(10, [0.06, 0.75]), _costs(2, [0.1]),
+                            _costs(10, [0.06, 0.75])], axis=1)
+    groups = np.array([0] * 20 + [1] * 12)
+    targets, decided = object_targets(costs, groups, 2, s)
+    assert decided[:10].all() and not decided[10:20].any() and decided[20:22].all()
+    assert abs(targets[0] - 0.3) < 0.015 and np.isnan(targets[1]), targets
+
+
+def test_an_objects_decided_pixels_keep_their_fit_and_the_others_follow_their_target():
+    costs = np.concatenate([_costs(4, [0.1]), _costs(4, [0.06, 0.66, 0.75])], axis=1)
+    fitted = np.array([0.13, 0.2, 0.09, 0.3, 0.3, 0.3, 0.3, 0.3])
+    rough, decided = follow_targets(costs, fitted, np.full(8, 0.7), RoughnessSettings())
+    assert decided[:4].all() and not decided[4:].any()
+    np.testing.assert_allclose(rough[:4], fitted[:4], rtol=1e-6)  # their own fit, not the grid's 0.1
+    np.testing.assert_allclose(rough[4:], 0.66, rtol=1e-6)  # the allowed value nearest 0.7 in log roughness
 
 
 def test_material_groups_split_two_colours():

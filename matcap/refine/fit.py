@@ -610,9 +610,9 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     full, px_full, mixing, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
                                             s.pixels.coarse_iters, s.pixels.fine_iters, shadow=shadow)
     choice = None
-    if flat is not None and s.roughness.iters > 0 and s.model.fit_brdf:
+    if s.roughness.iters > 0 and s.model.fit_brdf:
         t_r = time.perf_counter()
-        px_full, choice = _roughness_stage(torch, full, px_full, lights, s, bar, mixing)
+        px_full, choice = _roughness_stage(torch, full, px_full, lights, s, bar, mixing, plane=flat is not None)
         timings["roughness_s"] = time.perf_counter() - t_r
     detail = s.pixels.found_lamps_detail if known.source == "estimated" else 0.0
     if detail > 0:
@@ -652,19 +652,24 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
                         out.prediction)
 
 
-def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, mixing: "_Mixing | None"):
-    """A flat sample with known lights: every pixel's roughness chosen among the values its photos allow
-    (:func:`matcap.refine.roughness.choose_roughness`, from the fitted normals, base colour and metallic), then
-    the per-pixel solve again for the pixels whose roughness the choice moved by more than ``roughness.moved`` (a
-    factor), from the chosen roughness held by a prior of weight ``roughness.hold``; the others keep their fit.
+def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, mixing: "_Mixing | None",
+                     plane: bool):
+    """Known lights: pixels' roughness chosen among the values their photos allow (from the fitted normals, base
+    colour and metallic; ``plane``: a flat sample's rule, :func:`matcap.refine.roughness.choose_roughness`, else an
+    object's, :func:`_object_choice`), then the per-pixel solve again for the pixels whose roughness the choice
+    moved by more than ``roughness.moved`` (a factor), from the chosen roughness held by a prior of weight
+    ``roughness.hold``; the others keep their fit.
     Returns (the new :class:`PixelParams`, the :class:`matcap.refine.roughness.RoughnessChoice`)."""
     from matcap.refine.roughness import choose_roughness
 
     r = s.roughness
     with torch.no_grad():
         normal, base, rough, metal = px.normal(), px.base(), px.rough(), px.metal()
-    costs = _grid_costs_parallel(torch, full, normal, base, rough, metal, lights, r)
-    choice = choose_roughness(costs, base.cpu().numpy(), rough.cpu().numpy(), r, s.seed)
+    if plane:
+        costs = _grid_costs_parallel(torch, full, normal, base, rough, metal, lights, r)
+        choice = choose_roughness(costs, base.cpu().numpy(), rough.cpu().numpy(), r, s.seed)
+    else:
+        choice = _object_choice(torch, full, normal, base, rough, metal, lights, s)
     moved = np.abs(np.log(np.maximum(choice.rough, 1e-3)) - np.log(np.maximum(rough.cpu().numpy(), 1e-3))) > np.log(
         r.moved)
     out = [t.detach().clone() for t in px.tensors()]
@@ -674,6 +679,37 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     from matcap.refine.model import PixelParams
 
     return PixelParams(*out), choice
+
+
+def _object_choice(torch, full: _Problem, normal, base, rough, metal, lights, s: RefineSettings):
+    """An object's roughness choice (:func:`matcap.refine.roughness.object_targets` on a random sample of
+    ``roughness.sample`` pixels, then :func:`matcap.refine.roughness.follow_targets` on the pixels farther than
+    ``roughness.moved`` from their group's target); the other pixels keep their fitted roughness. ``normal``
+    (N, 3), ``base`` (N, 3), ``rough`` (N,), ``metal`` (N,) torch: the fitted maps of ``full``'s pixels.
+    Returns a :class:`matcap.refine.roughness.RoughnessChoice` (``decided``: the sample's)."""
+    from matcap.refine.roughness import RoughnessChoice, follow_targets, material_groups, object_targets
+
+    r = s.roughness
+    base_np, fitted = base.cpu().numpy(), rough.cpu().numpy()
+    groups = material_groups(base_np, r.groups, s.seed)
+    n_groups = int(groups.max()) + 1 if len(groups) else 0
+    rng = np.random.default_rng(s.seed)
+    sample = np.sort(rng.choice(len(full), size=min(len(full), r.sample), replace=False))
+
+    def costs(pixels):
+        t = torch.from_numpy(pixels).to(normal.device)
+        return _grid_costs_parallel(torch, full.part(pixels), normal[t], base[t], rough[t], metal[t], lights, r)
+
+    targets, decided = object_targets(costs(sample), groups[sample], n_groups, r)
+    target = targets[groups] if n_groups else np.zeros(0)
+    with np.errstate(invalid="ignore"):
+        far = np.isfinite(target) & (np.abs(np.log(np.maximum(fitted, 1e-3)) - np.log(np.where(
+            np.isfinite(target), target, 1.0))) > np.log(r.moved))
+    chosen = fitted.astype(np.float32).copy()
+    pixels = np.flatnonzero(far)
+    if len(pixels):
+        chosen[pixels], _ = follow_targets(costs(pixels), fitted[pixels], target[pixels], r)
+    return RoughnessChoice(chosen, decided, groups, targets, "object")
 
 
 def _resolve(torch, full: _Problem, px, out: list, pixels: np.ndarray, rough: np.ndarray, weight: float, lights,

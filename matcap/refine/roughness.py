@@ -1,13 +1,23 @@
-"""The roughness stage of a flat sample's fit with known lights: each pixel's roughness chosen among the values its
-photos allow, by what the pixels of the same material that saw a highlight say.
+"""The roughness stage of a fit with known lights: each pixel's roughness chosen among the values its photos
+allow, by what the pixels of the same material that saw a highlight say.
 
 A pixel whose photos show no highlight is explained about equally well by a narrow lobe (the highlight fell
 between the lamps) and by a broad, faint one (its shape taken up by the base colour); between the two lies a
 range that explains them worse. The per-pixel solve, started from the networks' roughness, stays in whichever of
-the two it starts nearer. This stage looks at every pixel's whole range instead: it tries each value of a grid
+the two it starts nearer. This stage looks at a pixel's whole range instead: it tries each value of a grid
 (the base colour solved in closed form, the normal and metallic as fitted), keeps the values within a tolerance of
 the best, and where those span a narrow range the pixel decides its own roughness. Pixels that do not are given
 the allowed value nearest the typical decided roughness of their material (pixels grouped by fitted base colour).
+
+Two rules, by what the pixels share:
+
+- a flat sample (:func:`choose_roughness`): every pixel faces the camera under the same lamps and started from
+  the networks' guess on the same side of the barrier, so decided pixels move to their own best value and a
+  material without decided pixels takes the sample's typical one;
+- an object (:func:`object_targets`, :func:`follow_targets`): its pixels face every way, so a pixel that saw a
+  highlight already had it in the per-pixel solve, with the full model (cast shadows, the outline's mixing), and
+  keeps that fit; the others follow only a target of their own material (a material without decided pixels keeps
+  its fit), and the targets come from a sample of the pixels.
 """
 
 from __future__ import annotations
@@ -22,19 +32,22 @@ from matcap.refine.settings import RoughnessSettings
 
 @dataclass
 class RoughnessChoice:
-    """What :func:`choose_roughness` chose: ``rough`` (N,) float32, each pixel's roughness (0-1);
-    ``decided`` (N,) bool, the pixels whose own photos allow only a narrow range; ``groups`` (N,) int, each
-    pixel's material group; ``targets`` (G,) float, each group's typical decided roughness (NaN: the group had
-    too few decided pixels and took the sample's)."""
+    """What the stage chose: ``rough`` (N,) float32, each pixel's roughness (0-1); ``decided`` (S,) bool, of the
+    pixels scored for the targets (all N on a flat sample, a sample on an object), those whose own photos allow
+    only a narrow range; ``groups`` (N,) int, each pixel's material group; ``targets`` (G,) float, each group's
+    typical decided roughness (NaN: the group had too few decided pixels and took the sample's on a flat sample,
+    kept its fit on an object); ``rule``: ``"plane"`` or ``"object"``."""
 
     rough: np.ndarray
     decided: np.ndarray
     groups: np.ndarray
     targets: np.ndarray
+    rule: str = "plane"
 
     def record(self) -> dict[str, Any]:
         """The choice as fit.json's ``roughness`` entry."""
         return {
+            "rule": self.rule,
             "decided_share": round(float(self.decided.mean()), 4) if len(self.decided) else 0.0,
             "group_targets": [None if not np.isfinite(t) else round(float(t), 4) for t in self.targets],
         }
@@ -126,6 +139,49 @@ def _vertex(costs: np.ndarray, lg: np.ndarray) -> np.ndarray:
     return np.where((best == 0) | (best == len(lg) - 1), lg[best], vertex)
 
 
+def _span(costs: np.ndarray, s: RoughnessSettings):
+    """(allowed (G, N) bool, lo (N,), hi (N,), decided (N,) bool) of grid costs (G, N): the grid values within
+    ``s.tolerance`` of each pixel's lowest cost, their least and greatest log roughness, and whether those span at
+    most a factor ``s.width``."""
+    lg = np.log(np.asarray(s.grid, np.float64))[:, None]
+    allowed = costs <= costs.min(axis=0, keepdims=True) + s.tolerance
+    lo = np.where(allowed, lg, np.inf).min(axis=0)
+    hi = np.where(allowed, lg, -np.inf).max(axis=0)
+    return allowed, lo, hi, (hi - lo) <= np.log(s.width) + 1e-9
+
+
+def _medians(middle: np.ndarray, decided: np.ndarray, groups: np.ndarray, n_groups: int, least: int) -> np.ndarray:
+    """(n_groups,) each group's median roughness (exp of ``middle``, log roughness (N,)) over its ``decided``
+    pixels; NaN where it has fewer than ``least``."""
+    targets = np.full(n_groups, np.nan)
+    for j in range(n_groups):
+        own = (groups == j) & decided
+        if own.sum() >= least:
+            targets[j] = float(np.exp(np.median(middle[own])))
+    return targets
+
+
+def object_targets(costs: np.ndarray, groups: np.ndarray, n_groups: int, s: RoughnessSettings
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """An object's material targets from the grid costs (G, M) of a sample of its pixels and their groups (M,)
+    int: (targets (n_groups,), each group's median decided roughness, NaN where the sample holds fewer than
+    ``s.min_decided`` decided pixels of it; decided (M,) bool)."""
+    _, _, _, decided = _span(costs, s)
+    middle = _vertex(costs, np.log(np.asarray(s.grid, np.float64)))
+    return _medians(middle, decided, groups, n_groups, s.min_decided), decided
+
+
+def follow_targets(costs: np.ndarray, fitted: np.ndarray, target: np.ndarray, s: RoughnessSettings
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """An object's pixels (grid costs (G, M), fitted roughness (M,), their material's target (M,)): a decided
+    pixel keeps its fitted roughness, the others take the allowed value nearest (in log roughness) the target.
+    Returns (roughness (M,) float32, decided (M,) bool)."""
+    grid = np.asarray(s.grid, np.float64)
+    allowed, _, _, decided = _span(costs, s)
+    nearest = np.where(allowed, np.abs(np.log(grid)[:, None] - np.log(target)[None]), np.inf).argmin(axis=0)
+    return np.where(decided, fitted, grid[nearest]).astype(np.float32), decided
+
+
 def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s: RoughnessSettings,
                      seed: int) -> RoughnessChoice:
     """Each pixel's roughness from its grid costs (:func:`grid_costs`, (G, N)), its fitted base colour (N, 3) and
@@ -140,22 +196,15 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
     grid = np.asarray(s.grid, np.float64)
     lg = np.log(grid)[:, None]
     n = costs.shape[1]
-    allowed = costs <= costs.min(axis=0, keepdims=True) + s.tolerance
-    lo = np.where(allowed, lg, np.inf).min(axis=0)
-    hi = np.where(allowed, lg, -np.inf).max(axis=0)
-    decided = (hi - lo) <= np.log(s.width) + 1e-9
+    allowed, lo, hi, decided = _span(costs, s)
     groups = material_groups(base, s.groups, seed)
     n_groups = int(groups.max()) + 1 if n else 0
-    targets = np.full(n_groups, np.nan)
     if not decided.any():
-        return RoughnessChoice(np.asarray(fitted, np.float32), decided, groups, targets)
+        return RoughnessChoice(np.asarray(fitted, np.float32), decided, groups, np.full(n_groups, np.nan))
     middle = np.where(decided, _vertex(costs, np.log(grid)), (lo + hi) / 2.0)
-    target = np.full(n, float(np.median(middle[decided])))
-    for j in range(n_groups):
-        own = (groups == j) & decided
-        if own.sum() >= s.min_decided:
-            targets[j] = float(np.exp(np.median(middle[own])))
-            target[groups == j] = np.log(targets[j])
+    targets = _medians(middle, decided, groups, n_groups, s.min_decided)
+    target = np.where(np.isfinite(targets), np.log(np.where(np.isfinite(targets), targets, 1.0)),
+                      float(np.median(middle[decided])))[groups]
     nearest = np.where(allowed, np.abs(lg - target[None]), np.inf).argmin(axis=0)
     rough = np.where(decided, np.exp(middle), grid[nearest]).astype(np.float32)
     return RoughnessChoice(rough, decided, groups, targets)

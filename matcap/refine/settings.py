@@ -178,7 +178,7 @@ class PixelStageSettings:
 
 @dataclass
 class RoughnessSettings:
-    """A flat sample with known lights (given, or found from their falloff): the roughness stage
+    """Known lights (given, from a ball, or a flat sample's found from their falloff): the roughness stage
     (:mod:`matcap.refine.roughness`), after the per-pixel solve, then a last solve with the chosen roughness held."""
 
     iters: int = 10
@@ -197,7 +197,11 @@ class RoughnessSettings:
     groups: int = 8
     """Material groups (k-means of the fitted base colour) whose decided pixels set the others' roughness."""
     min_decided: int = 20
-    """A group with fewer decided pixels takes the typical roughness of every decided pixel."""
+    """A group with fewer decided pixels has no target of its own: on a flat sample it takes the typical roughness
+    of every decided pixel, on an object it keeps its fit."""
+    sample: int = 20000
+    """An object's targets come from the scores of this many of its pixels (a random sample); then only the
+    pixels farther than ``moved`` from their group's target are scored."""
     hold: float = 5.0
     """Weight of (r - r_chosen)^2 in the last solve (in place of ``priors.rough``)."""
     moved: float = 1.25
