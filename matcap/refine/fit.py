@@ -533,7 +533,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     every photo are fitted, first by least squares, then jointly with a subsample's maps under the Principled
     model (``lights.known_iters`` or ``lights.iters`` Adam steps); the start normals come from
     semi-calibrated Lambertian least squares (:func:`known_irradiance`); (2) the per-pixel solve
-    (:func:`_solve_maps`) from calibrated photometric-stereo normals, then, on a flat sample, the roughness stage
+    (:func:`_solve_maps`) from calibrated photometric-stereo normals, then the roughness stage
     (:func:`_roughness_stage`); (3) outputs. With the lights known there is
     no bas-relief family to choose from, so nothing is gated: the maps are always the fitted ones. ``flat``: what
     :func:`matcap.refine.flat.flat_lights` found (empty where the lights were given), recorded in fit.json as
