@@ -759,7 +759,7 @@ def _grid_costs_parallel(torch, full: _Problem, normal, base, rough, metal, ligh
             res = _shade(lights, full.pos[sl], normal[sl], base[sl], rough[sl], metal[sl]) - obs
         inf = torch.full_like(upper, float("inf"))
         upper = torch.where(upper == 0, upper, torch.where((upper < inf) & (res > upper), -inf, inf))
-        return grid_costs(torch, obs, upper, full.pos[sl], normal[sl], metal[sl], lights, r.grid, r.noise, step)
+        return grid_costs(torch, obs, upper, full.pos[sl], normal[sl], metal[sl], lights, r.grid, r.noise)
 
     with _one_thread(torch) as threads:
         with ThreadPoolExecutor(_workers(threads), initializer=torch.set_num_threads, initargs=(1,)) as pool:

@@ -53,12 +53,12 @@ class RoughnessChoice:
         }
 
 
-def grid_costs(torch, obs, upper, pos, normal, metal, lights, grid, noise: float, chunk: int) -> np.ndarray:
+def grid_costs(torch, obs, upper, pos, normal, metal, lights, grid, noise: float) -> np.ndarray:
     """The data cost of every pixel at every roughness of ``grid``, its base colour solved in closed form.
 
     obs (K, N, 3) photos in fit units; upper (K, N, 3) the residual above which an observation adds none (0 where
-    clipped, -inf where left out, +inf elsewhere); pos (N, 3) plane positions; normal (N, 3), metal (N,)
-    torch, held (and, where a pixel's is above 0.1, also none: the lower cost counts); lights:
+    clipped, -inf where left out, +inf elsewhere); pos (N, 3) positions; normal (N, 3), metal (N,) torch, held
+    (and, where a pixel's is above 0.1, also none: the lower cost counts); lights:
     :class:`matcap.refine.model.LightParams`. The model is linear in the base colour at a fixed normal, roughness
     and metallic, so each channel's base colour is one least-squares division (over the observations not
     clipped), clipped to 0-1. The caller decides cast shadows once, before (``upper`` -inf: the observation
@@ -66,25 +66,21 @@ def grid_costs(torch, obs, upper, pos, normal, metal, lights, grid, noise: float
     photos and channels of log(1 + (residual / (noise x the pixel's mean observation))^2). Returns (len(grid), N)
     float32.
     """
-    n_px = obs.shape[1]
-    out = np.empty((len(grid), n_px), np.float32)
+    out = np.empty((len(grid), obs.shape[1]), np.float32)
     with torch.no_grad():
-        for i in range(0, n_px, chunk):
-            sl = slice(i, min(i + chunk, n_px))
-            o, up, nrm, m = obs[:, sl], upper[:, sl], normal[sl], metal[sl]
-            wo, irr = lights.incident(pos[sl])
-            used = (up > 0).to(o.dtype)  # a clipped observation bounds the model only from below
-            scale = (noise * o.mean(dim=(0, 2))).clamp(min=1e-4)[None, :, None]
-            q = torch.nonzero(m > 0.1).flatten()  # the pixels with some metallic: tried without it too
-            for g, r in enumerate(grid):
-                rv = torch.full_like(m, float(r))
-                cost = _cost(nrm, rv, m, wo, irr, lights.sh, o, up, used, scale)
-                if len(q):
-                    wo_q, irr_q = (wo, irr) if wo.shape[1] == 1 else (wo[:, q], irr[:, q])  # distant: shared
-                    none = _cost(nrm[q], rv[q], torch.zeros_like(m[q]), wo_q, irr_q, lights.sh, o[:, q], up[:, q],
-                                 used[:, q], scale[:, q])
-                    cost[q] = torch.minimum(cost[q], none)
-                out[g, sl] = cost.cpu().numpy()
+        wo, irr = lights.incident(pos)
+        used = (upper > 0).to(obs.dtype)  # a clipped observation bounds the model only from below
+        scale = (noise * obs.mean(dim=(0, 2))).clamp(min=1e-4)[None, :, None]
+        q = torch.nonzero(metal > 0.1).flatten()  # the pixels with some metallic: tried without it too
+        for g, r in enumerate(grid):
+            rv = torch.full_like(metal, float(r))
+            cost = _cost(normal, rv, metal, wo, irr, lights.sh, obs, upper, used, scale)
+            if len(q):
+                wo_q, irr_q = (wo, irr) if wo.shape[1] == 1 else (wo[:, q], irr[:, q])  # distant: shared
+                none = _cost(normal[q], rv[q], torch.zeros_like(metal[q]), wo_q, irr_q, lights.sh, obs[:, q],
+                             upper[:, q], used[:, q], scale[:, q])
+                cost[q] = torch.minimum(cost[q], none)
+            out[g] = cost.cpu().numpy()
     return out
 
 
