@@ -162,11 +162,19 @@ def ok(run: Run) -> Run:
     return run
 
 
+ANSI = re.compile(r"\x1b\[[0-9;]*m")
+#: a log line of Mitsuba (written to standard output, possibly between a table's rows): not part of the output
+LOG_LINE = re.compile(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\s+(TRACE|DEBUG|INFO|WARN|ERROR)\b")
+
+
 def tables(text: str) -> list[list[list[str]]]:
-    """Markdown tables in ``text``: a list of tables, each a list of rows (header first), each a list of cells."""
+    """Markdown tables in ``text``: a list of tables, each a list of rows (header first), each a list of cells.
+    Colour codes are dropped and log lines skipped, so a renderer's warnings between rows do not split a table."""
     out, cur = [], None
     for line in text.splitlines():
-        line = line.strip()
+        line = ANSI.sub("", line).strip()
+        if LOG_LINE.match(line):
+            continue
         if line.startswith("|") and line.endswith("|"):
             cells = [c.strip() for c in line[1:-1].split("|")]
             if all(re.fullmatch(r":?-+:?", c) for c in cells):

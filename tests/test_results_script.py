@@ -33,6 +33,15 @@ def test_markdown_tables_are_read_by_row():
         r.row_by(t[0], "missing")
 
 
+def test_renderer_log_lines_between_rows_do_not_split_a_table():
+    """Mitsuba writes its warnings to standard output, in colour, between a benchmark's rows."""
+    r = _module()
+    warn = "\x1b[31m2026-11-27 10:28:51 WARN  [MultijitterSampler] Sample count rounded up to 35"
+    text = f"| a | b |\n|---|---:|\n{warn}\n\x1b[0m| x | 1.5 |\n{warn}\n\x1b[0m| y | 2 |\n"
+    t = r.tables(text)
+    assert t == [[["a", "b"], ["x", "1.5"], ["y", "2"]]], t
+
+
 def test_only_the_text_between_the_markers_is_replaced(tmp_path):
     r = _module()
     page = tmp_path / "page.md"
