@@ -52,9 +52,29 @@ def test_known_lights_recover_a_glossy_sphere(glossy):
     assert (ratio.std(0) / ratio.mean(0)).max() < 0.02, ratio
     assert res.report["lights"]["source"] == "file" and res.report["kept_network_maps"] is False
     assert res.report["psnr_db_mean"] > 35
+    r = res.report["restarts"]
+    assert len(r["tried"]) == 2 and all(0 <= k <= t for k, t in zip(r["kept"], r["tried"])), r
 
 
 @pytest.mark.slow
+def test_neighbour_median_of_a_lone_normal():
+    """A 5 x 5 patch facing the camera with its centre tilted 40 degrees: the centre's neighbours say +z; a pixel
+    with no neighbour gets NaN; a neighbourhood turned away from the camera is kept facing it."""
+    from matcap.refine.fit import neighbour_median
+
+    rows, cols = (a.ravel() for a in np.mgrid[0:5, 0:5])
+    normal = np.tile(np.float32([0, 0, 1]), (25, 1))
+    t = np.radians(40.0)
+    normal[12] = [np.sin(t), 0.0, np.cos(t)]
+    med = neighbour_median(normal, rows, cols, (5, 5))
+    np.testing.assert_allclose(med[12], [0, 0, 1], atol=1e-6)
+    np.testing.assert_allclose(med[0], [0, 0, 1], atol=1e-6)  # a corner: its three neighbours
+    lone = neighbour_median(np.float32([[0, 0, 1], [1, 0, 0]]), np.array([0, 4]), np.array([0, 4]), (5, 5))
+    assert np.isnan(lone).all()
+    away = neighbour_median(np.tile(np.float32([0.6, 0, -0.8]), (25, 1)), rows, cols, (5, 5))
+    assert (away[:, 2] > 0).all() and np.allclose(np.linalg.norm(away, axis=1), 1, atol=1e-6)
+
+
 def test_cast_shadows_only_bound_the_model(glossy):
     """An occluder hides three of the twelve lamps from the left half of the sphere (those photos 95 % darker
     there): the fit takes such observations as cast shadow (``loss.shadow``) and recovers the normals; counted as

@@ -609,6 +609,13 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     t0 = time.perf_counter()
     full, px_full, mixing, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
                                             s.pixels.coarse_iters, s.pixels.fine_iters, shadow=shadow)
+    restarts = None
+    if s.pixels.restart_deg > 0 and s.pixels.restart_rounds > 0:
+        restarts = {"tried": [], "kept": []}
+        for _ in range(s.pixels.restart_rounds):
+            px_full, done = _neighbour_restarts(torch, full, px_full, lights, s, bar, mixing, mask)
+            restarts["tried"].append(done["tried"])
+            restarts["kept"].append(done["kept"])
     choice = None
     if s.roughness.iters > 0 and s.model.fit_brdf:
         t_r = time.perf_counter()
@@ -644,6 +651,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "cast_shadow_share": round(out.shadowed_share, 4),
         "outline": _outline_record(torch, mixing),
         "roughness": None if choice is None else choice.record(),
+        "restarts": restarts,
         "smooth_tilt_removed_sigma_widths": detail or None,
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "settings": asdict(s),
@@ -679,6 +687,59 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     from matcap.refine.model import PixelParams
 
     return PixelParams(*out), choice
+
+
+def neighbour_median(normal: np.ndarray, rows: np.ndarray, cols: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    """(N, 3) unit: the component-wise median of the normals of each pixel's eight neighbours among the N pixels
+    (``normal`` (N, 3) unit at ``rows``, ``cols`` (N,) of an ``hw`` frame), renormalised and kept facing the camera
+    (z at least 0.08); NaN where a pixel has no neighbour."""
+    import warnings
+
+    h, w = hw
+    img = np.full((h + 2, w + 2, 3), np.nan, np.float32)
+    img[rows + 1, cols + 1] = normal
+    around = np.stack([img[rows + dy, cols + dx] for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a pixel without neighbours: all-NaN
+        med = np.nanmedian(around, axis=0)
+    med[:, 2] = np.maximum(med[:, 2], 0.08)
+    return med / np.maximum(np.linalg.norm(med, axis=1, keepdims=True), 1e-9)
+
+
+def _neighbour_restarts(torch, full: _Problem, px, lights, s: RefineSettings, bar, mixing: "_Mixing | None",
+                        mask: np.ndarray):
+    """Known lights: the per-pixel solve again, from the median normal of the neighbours
+    (:func:`neighbour_median`), for the pixels whose normal lies more than ``pixels.restart_deg`` from it (the
+    outline's pixels, fitted as mixtures, excepted); each keeps the solution with the lower loss (data and priors,
+    :func:`_loss`). A pixel's solve finds the minimum nearest its start, and a lone normal far from its neighbours'
+    is often one the photos explain worse than theirs. Returns (:class:`PixelParams`, ``tried`` and ``kept`` pixel
+    counts)."""
+    from matcap.refine.model import PixelParams
+
+    with torch.no_grad():
+        normal = px.normal().cpu().numpy()
+    med = neighbour_median(normal, full.rows, full.cols, mask.shape)
+    ok = np.isfinite(med).all(axis=1)
+    cos = np.clip((np.where(ok[:, None], med, 0.0) * normal).sum(axis=1), -1.0, 1.0)
+    tried = ok & (cos < np.cos(np.radians(s.pixels.restart_deg)))
+    if mixing is not None:
+        tried[mixing.index] = False
+    pixels = np.flatnonzero(tried)
+    if not len(pixels):
+        return px, {"tried": 0, "kept": 0}
+    idx = torch.from_numpy(pixels).to(px.grad.device)
+    sub = full.part(pixels)
+    m = torch.from_numpy(med[pixels].astype(np.float32)).to(px.grad.device)
+    start = PixelParams(m[:, :2] / m[:, 2:], px.base_logit[idx], px.rough_logit[idx], px.metal_logit[idx])
+    solved = _solve_pixels(torch, sub, start, lights, s, s.loss.cauchy, s.pixels.restart_iters, bar, "restarts")
+    with torch.no_grad():
+        before = _loss(torch, sub, PixelParams(*[t[idx] for t in px.tensors()]), lights, s, s.loss.cauchy)[0]
+        after = _loss(torch, sub, solved, lights, s, s.loss.cauchy)[0]
+    kept = after < before
+    out = [t.detach().clone() for t in px.tensors()]
+    for o, t in zip(out, solved.tensors()):
+        o[idx[kept]] = t[kept].detach()
+    return PixelParams(*out), {"tried": int(len(pixels)), "kept": int(kept.sum())}
 
 
 def _object_choice(torch, full: _Problem, normal, base, rough, metal, lights, s: RefineSettings):

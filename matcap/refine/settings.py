@@ -170,6 +170,14 @@ class PixelStageSettings:
     there can cover the object only in part (the lens's blur, a mask drawn a pixel wide), so it is fitted as a
     mixture, coverage x the model + (1 - coverage) x what lies behind it (the mean of the photo's pixels just off
     the mask), its coverage a free parameter. 0: every pixel is the object's alone."""
+    restart_deg: float = 5.0
+    """Known lights: a pixel whose fitted normal lies farther than this (degrees) from the median of its eight
+    neighbours' is solved again from that median (``restart_iters`` iterations; base colour, roughness and
+    metallic from its own fit) and keeps whichever solution has the lower loss (data and priors). 0: none."""
+    restart_iters: int = 20
+    """Iterations of that second solve."""
+    restart_rounds: int = 2
+    """Rounds of those restarts (a pixel fixed in one round gives its neighbours a better median in the next)."""
     found_lamps_detail: float = 0.125
     """A flat sample whose lamps were found from their falloff: its fitted normals keep only the tilts finer than
     this share of the sample's width (those of a Gaussian of that sigma are taken out; the sample is a plane at
