@@ -745,8 +745,9 @@ def _neighbour_restarts(torch, full: _Problem, px, lights, s: RefineSettings, ba
 def _object_choice(torch, full: _Problem, normal, base, rough, metal, lights, s: RefineSettings):
     """An object's roughness choice (:func:`matcap.refine.roughness.object_targets` on a random sample of
     ``roughness.sample`` pixels, then :func:`matcap.refine.roughness.follow_targets` on the pixels farther than
-    ``roughness.moved`` from their group's target); the other pixels keep their fitted roughness. ``normal``
-    (N, 3), ``base`` (N, 3), ``rough`` (N,), ``metal`` (N,) torch: the fitted maps of ``full``'s pixels.
+    ``roughness.moved`` from their group's target, the sample's scores reused); the other pixels keep their fitted
+    roughness. ``normal`` (N, 3), ``base`` (N, 3), ``rough`` (N,), ``metal`` (N,) torch: the fitted maps of
+    ``full``'s pixels.
     Returns a :class:`matcap.refine.roughness.RoughnessChoice` (``decided``: the sample's)."""
     from matcap.refine.roughness import RoughnessChoice, follow_targets, material_groups, object_targets
 
@@ -761,16 +762,23 @@ def _object_choice(torch, full: _Problem, normal, base, rough, metal, lights, s:
         t = torch.from_numpy(pixels).to(normal.device)
         return _grid_costs_parallel(torch, full.part(pixels), normal[t], base[t], rough[t], metal[t], lights, r)
 
-    targets, decided = object_targets(costs(sample), groups[sample], n_groups, r)
+    sample_costs = costs(sample)
+    targets, decided = object_targets(sample_costs, groups[sample], n_groups, r)
     target = targets[groups] if n_groups else np.zeros(0)
-    with np.errstate(invalid="ignore"):
-        far = np.isfinite(target) & (np.abs(np.log(np.maximum(fitted, 1e-3)) - np.log(np.where(
-            np.isfinite(target), target, 1.0))) > np.log(r.moved))
+    has = np.isfinite(target)
+    far = has & (np.abs(np.log(np.maximum(fitted, 1e-3)) - np.log(np.where(has, target, 1.0))) > np.log(r.moved))
     chosen = fitted.astype(np.float32).copy()
     pixels = np.flatnonzero(far)
-    if len(pixels):
-        chosen[pixels], _ = follow_targets(costs(pixels), fitted[pixels], target[pixels], r)
-    return RoughnessChoice(chosen, decided, groups, targets, "object")
+    if len(pixels):  # the sample's pixels among them are scored already
+        at = np.full(len(full), -1, np.int64)
+        at[sample] = np.arange(len(sample))
+        scored = at[pixels] >= 0
+        c = np.empty((len(r.grid), len(pixels)), np.float32)
+        c[:, scored] = sample_costs[:, at[pixels[scored]]]
+        if not scored.all():
+            c[:, ~scored] = costs(pixels[~scored])
+        chosen[pixels], _ = follow_targets(c, fitted[pixels], target[pixels], r)
+    return RoughnessChoice(chosen, decided, targets, "object")
 
 
 def _resolve(torch, full: _Problem, px, out: list, pixels: np.ndarray, rough: np.ndarray, weight: float, lights,
