@@ -9,7 +9,7 @@ import pytest
 
 from conftest import shared_path
 
-from matcap.refine.roughness import choose_roughness, follow_targets, material_groups, object_targets
+from matcap.refine.roughness import choose_roughness, follow_targets, group_metallic, material_groups, object_targets
 from matcap.refine.settings import RoughnessSettings
 
 GRID = RoughnessSettings().grid
@@ -137,3 +137,60 @@ def test_shade_base_linear_splits_the_model():
         const, per_base = shade_base_linear(normal, rough, metal, wo, irr, sh)
         assert const.shape == per_base.shape == full.shape
         torch.testing.assert_close(const + base[None] * per_base, full, rtol=1e-4, atol=1e-5)
+
+
+def _votes(n_px: int, held: float, free: float) -> np.ndarray:
+    """(4, n_px) metal_costs rows whose metal-minus-dielectric difference is ``held`` (roughness held) and ``free``
+    (roughness free) for every pixel."""
+    c = np.zeros((4, n_px), np.float32)
+    c[1], c[3] = held, free
+    return c
+
+
+def test_group_metallic_follows_the_photos_where_both_votes_agree():
+    s = RoughnessSettings(min_decided=5)
+    groups = np.repeat([0, 1, 2, 3], 20)
+    costs = np.concatenate([_votes(20, -30, -30),  # metal, held and free
+                            _votes(20, 30, 30),  # dielectric
+                            _votes(20, 30, -30),  # the votes disagree: no decision
+                            _votes(20, 1, -1)], axis=1)  # within the tolerance: no votes, the fitted median
+    fitted = np.concatenate([np.full(20, 0.2), np.full(20, 0.7), np.full(20, 0.5), np.full(20, 0.8)])
+    out = group_metallic(costs, groups, 5, fitted, s)
+    assert out[0] == 1 and out[1] == 0 and np.isnan(out[2]) and out[3] == 1, out
+    assert np.isnan(out[4])  # a group without pixels
+    # a minority of contrary votes does not turn a group
+    c = np.concatenate([_votes(15, -30, -30), _votes(5, 30, 30)], axis=1)
+    assert group_metallic(c, np.zeros(20, int), 1, np.zeros(20), s)[0] == 1
+    rec = choose_roughness(_costs(3, [0.1]), np.full((3, 3), 0.5), np.full(3, 0.5), s, seed=0)
+    rec.metallic = out
+    assert rec.record()["group_metallic"] == [1, 0, None, 1, None]
+
+
+def test_metal_costs_tell_a_rendered_metal_from_a_dielectric():
+    """Pixels shaded by the fit's own model under 12 distant lights, half gold metal, half a dielectric of the same
+    colour: at their true normals and roughness, each is cheaper as what it is, held and free."""
+    import torch
+
+    from matcap.refine import synthetic as S
+    from matcap.refine.model import LightParams, shade_fast
+    from matcap.refine.roughness import metal_costs
+
+    g = torch.Generator().manual_seed(0)
+    n_px = 400
+    normal = torch.nn.functional.normalize(torch.randn(n_px, 3, generator=g) * 0.4 + torch.tensor([0.0, 0.0, 1.0]),
+                                           dim=-1)
+    rough = torch.full((n_px,), 0.3)
+    metal = (torch.arange(n_px) < n_px // 2).float()
+    base = torch.tensor([0.9, 0.7, 0.4]).expand(n_px, 3)
+    dirs = torch.tensor(np.array([l.direction for l in S.known_lights(12)]), dtype=torch.float32)
+    lights = LightParams("directional", dirs, torch.zeros(12, 3), torch.zeros(1, 9, 3))
+    pos = torch.zeros(n_px, 3)
+    wo, irr = lights.incident(pos)
+    obs = shade_fast(normal, base, rough, metal, wo, irr, lights.sh)
+    upper = torch.full_like(obs, float("inf"))
+    c = metal_costs(torch, obs, upper, pos, normal, rough, lights, GRID, 0.04)
+    assert c.shape == (4, n_px)
+    is_metal = metal.numpy() > 0.5
+    for dielectric, metal_row in ((0, 1), (2, 3)):
+        d = c[metal_row] - c[dielectric]
+        assert (d[is_metal] < -8).mean() > 0.9 and (d[~is_metal] > 8).mean() > 0.9, (d[is_metal], d[~is_metal])

@@ -664,9 +664,12 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
                      plane: bool):
     """Known lights: pixels' roughness chosen among the values their photos allow (from the fitted normals, base
     colour and metallic; ``plane``: a flat sample's rule, :func:`matcap.refine.roughness.choose_roughness`, else an
-    object's, :func:`_object_choice`), then the per-pixel solve again for the pixels whose roughness the choice
-    moved by more than ``roughness.moved`` (a factor), from the chosen roughness held by a prior of weight
-    ``roughness.hold``; the others keep their fit.
+    object's, :func:`_object_choice`) and each material group's metallic, 0 or 1, where the photos of a sample of
+    its pixels vote for it (:func:`_metallic_vote`); then the per-pixel solve again for the pixels whose roughness
+    the choice moved by more than ``roughness.moved`` (a factor) or whose metallic lies more than
+    ``roughness.metallic_moved`` from their group's, from the chosen values held by priors of weight
+    ``roughness.hold`` and ``roughness.metallic_hold`` (a group without a clear vote holds each pixel's fitted
+    metallic); a pixel re-solved for its metallic alone keeps its normal. The others keep their fit.
     Returns (the new :class:`PixelParams`, the :class:`matcap.refine.roughness.RoughnessChoice`)."""
     from matcap.refine.roughness import choose_roughness
 
@@ -680,13 +683,46 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
         choice = _object_choice(torch, full, normal, base, rough, metal, lights, s)
     moved = np.abs(np.log(np.maximum(choice.rough, 1e-3)) - np.log(np.maximum(rough.cpu().numpy(), 1e-3))) > np.log(
         r.moved)
+    held_metal = None
+    if r.metallic_hold > 0:
+        choice.metallic, groups = _metallic_vote(torch, full, normal, base, rough, metal, choice.rough, lights, s)
+        fitted_metal = metal.cpu().numpy()
+        held_metal = np.where(np.isnan(choice.metallic[groups]), fitted_metal, choice.metallic[groups])
+        metal_only = (np.abs(held_metal - fitted_metal) > r.metallic_moved) & ~moved
+        moved |= metal_only
     out = [t.detach().clone() for t in px.tensors()]
     pixels = np.flatnonzero(moved)
     if len(pixels):
-        _resolve(torch, full, px, out, pixels, choice.rough[pixels], r.hold, lights, s, bar, mixing)
+        _resolve(torch, full, px, out, pixels, choice.rough[pixels], r.hold, lights, s, bar, mixing,
+                 None if held_metal is None else held_metal[pixels], r.metallic_hold)
+    if held_metal is not None:  # a pixel re-solved for its metallic alone keeps the normal the per-pixel solve gave
+        keep = torch.from_numpy(np.flatnonzero(metal_only)).to(out[0].device)
+        out[0][keep] = px.grad[keep]
     from matcap.refine.model import PixelParams
 
     return PixelParams(*out), choice
+
+
+def _metallic_vote(torch, full: _Problem, normal, base, rough, metal, chosen: np.ndarray, lights,
+                   s: RefineSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Each material group's metallic (:func:`matcap.refine.roughness.group_metallic`: 0, 1 or NaN) from the
+    votes of a random sample of ``roughness.sample`` of ``full``'s pixels, at their fitted maps ``normal`` (N, 3),
+    ``base`` (N, 3), ``rough`` (N,), ``metal`` (N,) torch and the stage's roughness ``chosen`` (N,).
+    Returns ((G,) group metallic, (N,) each pixel's group)."""
+    from matcap.refine.roughness import group_metallic, material_groups, metal_costs
+
+    r = s.roughness
+    groups = material_groups(base.cpu().numpy(), r.groups, s.seed)
+    sample = np.sort(np.random.default_rng(s.seed).choice(len(full), size=min(len(full), r.sample), replace=False))
+    t_s = torch.from_numpy(sample).to(normal.device)
+    held = torch.from_numpy(np.ascontiguousarray(chosen, np.float32)).to(normal.device)[t_s]
+
+    def score(obs, upper, pos, nrm, sl):
+        return metal_costs(torch, obs, upper, pos, nrm, held[sl], lights, r.grid, r.noise)
+
+    costs = _costs_parallel(torch, full.part(sample), normal[t_s], base[t_s], rough[t_s], metal[t_s], lights, score)
+    count = int(groups.max()) + 1 if len(groups) else 0
+    return group_metallic(costs, groups[sample], count, metal.cpu().numpy()[sample], r), groups
 
 
 def neighbour_median(normal: np.ndarray, rows: np.ndarray, cols: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
@@ -782,10 +818,12 @@ def _object_choice(torch, full: _Problem, normal, base, rough, metal, lights, s:
 
 
 def _resolve(torch, full: _Problem, px, out: list, pixels: np.ndarray, rough: np.ndarray, weight: float, lights,
-             s: RefineSettings, bar, mixing: "_Mixing | None") -> None:
+             s: RefineSettings, bar, mixing: "_Mixing | None", metal: np.ndarray | None = None,
+             metal_weight: float = 0.0) -> None:
     """The per-pixel solve of ``full``'s pixels ``pixels`` (M,) again (``roughness.iters`` iterations), from ``px``
-    with their roughness ``rough`` (M,), which is also their prior's, of weight ``weight``; written into ``out``
-    (:class:`PixelParams` tensors) and, for the outline's pixels among them, ``mixing``'s coverage."""
+    with their roughness ``rough`` (M,), which is also their prior's, of weight ``weight`` (and, where given, their
+    metallic ``metal`` (M,), its prior's weight ``metal_weight``); written into ``out`` (:class:`PixelParams`
+    tensors) and, for the outline's pixels among them, ``mixing``'s coverage."""
     import dataclasses
 
     from matcap.refine.model import PixelParams, _logit
@@ -793,7 +831,13 @@ def _resolve(torch, full: _Problem, px, out: list, pixels: np.ndarray, rough: np
     sub = full.part(pixels)
     sub.r0 = torch.from_numpy(np.ascontiguousarray(rough, np.float32)).to(full.r0.device)
     idx = torch.from_numpy(pixels).to(full.r0.device)
-    start = PixelParams(px.grad[idx], px.base_logit[idx], _logit(sub.r0.clamp(0.03, 0.97)), px.metal_logit[idx])
+    metal_logit = px.metal_logit[idx]
+    priors = dataclasses.replace(s.priors, rough=weight)
+    if metal is not None:
+        sub.m0 = torch.from_numpy(np.ascontiguousarray(metal, np.float32)).to(full.r0.device)
+        metal_logit = _logit(sub.m0.clamp(0.03, 0.97))
+        priors = dataclasses.replace(priors, metal=metal_weight)
+    start = PixelParams(px.grad[idx], px.base_logit[idx], _logit(sub.r0.clamp(0.03, 0.97)), metal_logit)
     sub_mixing, keep = None, None
     if mixing is not None:  # the outline's pixels among them, indexed within the subset
         where = np.full(len(full), -1, np.int64)
@@ -802,7 +846,7 @@ def _resolve(torch, full: _Problem, px, out: list, pixels: np.ndarray, rough: np
         if len(found):
             keep = torch.from_numpy(found).to(full.r0.device)
             sub_mixing = _Mixing(where[mixing.index[found]], mixing.backdrop[:, keep], mixing.cover_logit[keep].clone())
-    held = dataclasses.replace(s, priors=dataclasses.replace(s.priors, rough=weight))
+    held = dataclasses.replace(s, priors=priors)
     solved = _solve_pixels(torch, sub, start, lights, held, s.loss.cauchy, s.roughness.iters, bar, "roughness",
                            sub_mixing)
     for o, t in zip(out, solved.tensors()):
@@ -813,27 +857,39 @@ def _resolve(torch, full: _Problem, px, out: list, pixels: np.ndarray, rough: np
 
 def _grid_costs_parallel(torch, full: _Problem, normal, base, rough, metal, lights, r) -> np.ndarray:
     """:func:`matcap.refine.roughness.grid_costs` of every pixel of ``full`` (its fitted maps ``normal``, ``base``,
-    ``rough``, ``metal``: the observations they leave in cast shadow stay out at every roughness), chunk by chunk
-    on as many threads as torch was given, each of them with one-thread operations (as :func:`_solve_pixels`)."""
-    from concurrent.futures import ThreadPoolExecutor
-
+    ``rough``, ``metal``), by :func:`_costs_parallel`. Returns (len(r.grid), N)."""
     from matcap.refine.roughness import grid_costs
+
+    if len(full) == 0:
+        return np.zeros((len(r.grid), 0), np.float32)
+    return _costs_parallel(torch, full, normal, base, rough, metal, lights,
+                           lambda obs, upper, pos, nrm, sl: grid_costs(torch, obs, upper, pos, nrm, metal[sl], lights,
+                                                                       r.grid, r.noise))
+
+
+def _costs_parallel(torch, full: _Problem, normal, base, rough, metal, lights, score) -> np.ndarray:
+    """``score(obs, upper, pos, normal, sl)`` -> (C, n) of every pixel of ``full`` chunk by chunk (``sl`` the
+    chunk's slice of the N pixels), on as many threads as torch was given, each of them with one-thread
+    operations (as :func:`_solve_pixels`). The observations the fitted maps ``normal``, ``base``, ``rough``,
+    ``metal`` leave in cast shadow have ``upper`` -inf (out at every value scored), clipped ones 0. Returns
+    (C, N)."""
+    from concurrent.futures import ThreadPoolExecutor
 
     step = 8192
     parts = [slice(i, min(i + step, len(full))) for i in range(0, len(full), step)]
 
     def cost(sl):
         obs, upper = full.obs[:, sl], full.upper[:, sl]
-        with torch.no_grad():  # cast shadow as the fit left it (upper finite and exceeded), out at every roughness
+        with torch.no_grad():  # cast shadow as the fit left it (upper finite and exceeded)
             res = _shade(lights, full.pos[sl], normal[sl], base[sl], rough[sl], metal[sl]) - obs
         inf = torch.full_like(upper, float("inf"))
         upper = torch.where(upper == 0, upper, torch.where((upper < inf) & (res > upper), -inf, inf))
-        return grid_costs(torch, obs, upper, full.pos[sl], normal[sl], metal[sl], lights, r.grid, r.noise)
+        return score(obs, upper, full.pos[sl], normal[sl], sl)
 
     with _one_thread(torch) as threads:
         with ThreadPoolExecutor(_workers(threads), initializer=torch.set_num_threads, initargs=(1,)) as pool:
             out = list(pool.map(cost, parts))
-    return np.concatenate(out, axis=1) if out else np.zeros((len(r.grid), 0), np.float32)
+    return np.concatenate(out, axis=1)
 
 
 def _plane_normals(mask: np.ndarray) -> np.ndarray:

@@ -4,8 +4,9 @@ A plane's mean normal is the camera axis, so a lamp a few sample widths away sho
 photo k's irradiance at plane point x is ``I_k * h_k / |p_k - x|^3`` (a lamp at ``p_k``, ``h_k`` its height above
 the plane), and the ratio of two photos at one pixel cancels the albedo. :func:`plane_lamps` fits every lamp's
 position and relative intensity to those ratios (log domain, robust, the per-pixel albedo profiled out).
-From far away the falloff is flat and tells nothing; the lights' directions then come from how the surface's small
-tilts (the networks' normals) brighten and darken under each photo (:func:`plane_directions`).
+From far away the falloff is flat and tells nothing (:attr:`PlaneLamps.near` is false): the photos of one plane
+under distant lights cannot tell those lights apart, so :func:`flat_lights` returns none and the lights must be
+given (a light file, a mirror ball).
 
 :func:`check_flat` says whether a capture looks like a flat sample (the networks' normals close to the camera axis
 over most of a well-filled frame). Positions are in the framing plane's world units (:mod:`renderers.plane`: the

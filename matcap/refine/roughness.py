@@ -36,19 +36,24 @@ class RoughnessChoice:
     pixels scored for the targets (all N on a flat sample, a sample on an object), those whose own photos allow
     only a narrow range; ``targets`` (G,) float, each material group's typical decided roughness (NaN: the group
     had too few decided pixels and took the sample's on a flat sample, kept its fit on an object); ``rule``:
-    ``"plane"`` or ``"object"``."""
+    ``"plane"`` or ``"object"``; ``metallic`` (G',) each material group's metallic (:func:`group_metallic`: 0, 1
+    or NaN), or None."""
 
     rough: np.ndarray
     decided: np.ndarray
     targets: np.ndarray
     rule: str = "plane"
+    metallic: np.ndarray | None = None
 
     def record(self) -> dict[str, Any]:
-        """The choice as fit.json's ``roughness`` entry."""
+        """The choice as fit.json's ``roughness`` entry (``group_metallic``: each material group's metallic, or
+        None where the stage left metallic as fitted)."""
         return {
             "rule": self.rule,
             "decided_share": round(float(self.decided.mean()), 4) if len(self.decided) else 0.0,
             "group_targets": [None if not np.isfinite(t) else round(float(t), 4) for t in self.targets],
+            "group_metallic": None if self.metallic is None else [
+                None if np.isnan(v) else int(v) for v in self.metallic],
         }
 
 
@@ -96,6 +101,58 @@ def _cost(nrm, rv, m, wo, irr, sh, o, up, used, scale):
 def _zero_above(res, up):
     """``res`` with the entries above ``up`` zeroed (a clipped observation the model exceeds, see ``upper``)."""
     return res * (res <= up).to(res.dtype)
+
+
+def metal_costs(torch, obs, upper, pos, normal, rough, lights, grid, noise: float) -> np.ndarray:
+    """(4, N) float32: the data cost of every pixel as a dielectric (metallic 0) and as a metal (metallic 1) at its
+    roughness ``rough`` (N,) torch (rows 0, 1), and each at its best roughness of ``grid`` (rows 2, 3), the base
+    colour solved in closed form; the other arguments and the cost as in :func:`grid_costs`."""
+    out = np.full((4, obs.shape[1]), np.inf, np.float32)
+    with torch.no_grad():
+        wo, irr = lights.incident(pos)
+        used = (upper > 0).to(obs.dtype)
+        scale = (noise * obs.mean(dim=(0, 2))).clamp(min=1e-4)[None, :, None]
+        ones = torch.ones(obs.shape[1], dtype=obs.dtype, device=obs.device)
+        for i, m in enumerate((0.0, 1.0)):
+            out[i] = _cost(normal, rough, ones * m, wo, irr, lights.sh, obs, upper, used, scale).cpu().numpy()
+            for r in grid:
+                c = _cost(normal, ones * float(r), ones * m, wo, irr, lights.sh, obs, upper, used, scale)
+                out[2 + i] = np.minimum(out[2 + i], c.cpu().numpy())
+    return out
+
+
+def group_metallic(costs: np.ndarray, groups: np.ndarray, count: int, fitted: np.ndarray,
+                   s: RoughnessSettings) -> np.ndarray:
+    """(G,) float32, each material group's metallic: 0 or 1 where its pixels' photos vote for it, NaN where they do
+    not (the group keeps its fitted metallic).
+
+    costs: (4, N) :func:`metal_costs` of N pixels; groups: (N,) int in [0, count); fitted: (N,) their fitted
+    metallic. A pixel votes metal where its cost as a metal is lower than as a dielectric by more than
+    ``s.tolerance``, dielectric the other way round; a group with at least ``s.min_decided`` votes is what most of
+    them say, one with fewer the median of its fitted metallic, rounded. The vote is taken twice, with each pixel's
+    roughness held (rows 0, 1) and free (rows 2, 3), and a group is set only where both agree: held, the vote
+    leans toward the side the per-pixel solve settled on (a metal fitted as a dielectric keeps a lobe too narrow
+    for a metal); free, a broad metal lobe passes for a dielectric's diffuse colour.
+
+    A real material is a metal or a dielectric (the metallic-roughness convention of glTF and the game engines);
+    in-between values belong to the boundary between two materials, which one pixel of a photo rarely resolves.
+    Per pixel, a dielectric's cast shadows and interreflections read as a touch of metal, and the fitted value is
+    also pulled toward the networks' guess; the photos' vote over a material outvotes both."""
+    costs = np.asarray(costs, np.float64)
+    fitted = np.asarray(fitted, np.float64)
+    out = np.full(count, np.nan, np.float32)
+    for g in range(count):
+        sel = groups == g
+        if not sel.any():
+            continue
+        said = []
+        for rows in ((0, 1), (2, 3)):
+            d = costs[rows[1], sel] - costs[rows[0], sel]
+            m, e = int((d < -s.tolerance).sum()), int((d > s.tolerance).sum())
+            said.append(float(m > e) if m + e >= s.min_decided else float(np.median(fitted[sel]) > 0.5))
+        if said[0] == said[1]:
+            out[g] = said[0]
+    return out
 
 
 def material_groups(base: np.ndarray, count: int, seed: int, sample: int = 20000, iters: int = 20) -> np.ndarray:

@@ -215,6 +215,13 @@ class RoughnessSettings:
     moved: float = 1.25
     """The last solve takes the pixels whose chosen roughness differs from the fitted one by more than this
     factor; the others keep their fit."""
+    metallic_hold: float = 5.0
+    """Weight of (m - m_group)^2 in the last solve, m_group each material group's metallic, 0 or 1, as the photos
+    of a sample of its pixels vote (:func:`matcap.refine.roughness.group_metallic`; a group whose vote is not
+    clear holds each pixel's fitted metallic); 0 leaves metallic free as in the per-pixel solve."""
+    metallic_moved: float = 0.1
+    """The last solve also takes the pixels whose fitted metallic differs from their group's by more than this
+    (such a pixel keeps the normal the per-pixel solve gave it)."""
 
 
 @dataclass
