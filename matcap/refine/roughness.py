@@ -18,6 +18,9 @@ Two rules, by what the pixels share:
   highlight already had it in the per-pixel solve, with the full model (cast shadows, the outline's mixing), and
   keeps that fit; the others follow only a target of their own material (a material without decided pixels keeps
   its fit), and the targets come from a sample of the pixels.
+
+The same stage sets each material's metallic to 0 or 1 where its pixels' photos vote for it (:func:`metal_costs`,
+:func:`group_metallic`).
 """
 
 from __future__ import annotations
