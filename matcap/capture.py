@@ -66,13 +66,13 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> 
     return mask
 
 
-# Peak memory of a capture, per pixel of one photo at working size, with a margin over what was measured (the fit
-# at full size: 16 photos of 4,000 x 3,000 peaked at ~77 B/px over the base; docs/ci.md, "Huge inputs"): the
-# decoded photos, the fit's copies of them and its re-render. A capture whose estimate exceeds MEMORY_FRACTION of
-# the available memory is refused up front.
-BYTES_PER_IMAGE_PIXEL = 80
+# Peak memory of a capture, per pixel of one photo at working size (the largest measured: the fit at full size, 16
+# photos of 4,000 x 3,000, about 93 B/px over the base; docs/ci.md, "Huge inputs"): the decoded photos, the fit's
+# copies of them and its re-render. A capture whose estimate exceeds MEMORY_FRACTION of the available memory is
+# refused up front (the rest is the margin for what else the machine does meanwhile).
+BYTES_PER_IMAGE_PIXEL = 95
 FIXED_BYTES = 1.5e9  # Python, torch, two small networks
-MEMORY_FRACTION = 0.8
+MEMORY_FRACTION = 0.9
 
 
 def available_memory() -> int:

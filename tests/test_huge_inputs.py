@@ -61,11 +61,11 @@ def test_image_size_reads_headers_like_read_image(tmp_path):
 def test_memory_estimate_and_message(monkeypatch):
     monkeypatch.setenv("MATCAP_MEMORY_GB", "24")
     need = memory_needed(200, (9000, 12000))
-    assert need > 1e12  # 200 x 108 Mpx: about 1.7 TB
+    assert need > 1e12  # 200 x 108 Mpx: about 2.1 TB
     with pytest.raises(MatcapError) as err:
         check_memory(200, (9000, 12000))
     msg = str(err.value)
-    assert "\n" not in msg and "200 photos of 12000x9000" in msg and "than the 19 GB that can be spared" in msg
+    assert "\n" not in msg and "200 photos of 12000x9000" in msg and "than the 22 GB that can be spared" in msg
     assert "use --max-side 1088" in msg
     check_memory(16, (1024, 1024))  # a normal capture passes
     side = int(msg.split("--max-side ")[1].split()[0])
