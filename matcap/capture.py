@@ -953,6 +953,8 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
                                      for k in (constants or {})}
     if "roughness" in (constants or {}):
         held["roughness.iters"] = 0  # no roughness to choose
+    if "metallic" in (constants or {}):
+        held["roughness.metallic_hold"] = 0.0  # no metallic to vote on
     if held:  # constant maps stay where the caller put them
         s = s.replace(held)
     result = refine(images, maps, s, progress=progress, lights=lights, flat=flat)

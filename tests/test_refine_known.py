@@ -228,3 +228,20 @@ def test_capture_with_known_lights_round_trips(tmp_path, tiny_weights):
     assert r.returncode == 0, r.stderr
     got_b = np.array([e["direction"] for e in json.loads((tmp_path / "b" / "lights.json").read_text())["images"]])
     np.testing.assert_allclose(got_b, got, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_a_constant_metallic_is_not_voted_on(glossy):
+    """``--constant metallic=V`` with known lights: the fit holds V, and the roughness stage takes no vote on it."""
+    from matcap.capture import refine_maps
+
+    truth, lights, photos, start = glossy
+    seen = {}
+    refine_maps(start.with_constants({"metallic": 0.3}), photos, [f"{i}.png" for i in range(len(photos))], "linear",
+                constants={"metallic": 0.3},
+                lights=_known(lights), on_fit=lambda result, s: seen.update(result=result, settings=s))
+    res, s = seen["result"], seen["settings"]
+    assert s.roughness.metallic_hold == 0 and s.priors.metal == 1e4
+    assert res.report["roughness"]["group_metallic"] is None
+    m = truth.mask
+    assert np.abs(res.maps.metallic[m] - 0.3).max() < 0.01, np.abs(res.maps.metallic[m] - 0.3).max()
