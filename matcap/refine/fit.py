@@ -685,9 +685,10 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
         r.moved)
     held_metal = None
     if r.metallic_hold > 0:
-        choice.metallic, groups = _metallic_vote(torch, full, normal, base, rough, metal, choice.rough, lights, s)
+        choice.metallic = _metallic_vote(torch, full, normal, base, rough, metal, choice, lights, s)
         fitted_metal = metal.cpu().numpy()
-        held_metal = np.where(np.isnan(choice.metallic[groups]), fitted_metal, choice.metallic[groups])
+        voted = choice.metallic[choice.groups]
+        held_metal = np.where(np.isnan(voted), fitted_metal, voted)
         metal_only = (np.abs(held_metal - fitted_metal) > r.metallic_moved) & ~moved
         moved |= metal_only
     out = [t.detach().clone() for t in px.tensors()]
@@ -703,26 +704,30 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     return PixelParams(*out), choice
 
 
-def _metallic_vote(torch, full: _Problem, normal, base, rough, metal, chosen: np.ndarray, lights,
-                   s: RefineSettings) -> tuple[np.ndarray, np.ndarray]:
-    """Each material group's metallic (:func:`matcap.refine.roughness.group_metallic`: 0, 1 or NaN) from the
-    votes of a random sample of ``roughness.sample`` of ``full``'s pixels, at their fitted maps ``normal`` (N, 3),
-    ``base`` (N, 3), ``rough`` (N,), ``metal`` (N,) torch and the stage's roughness ``chosen`` (N,).
-    Returns ((G,) group metallic, (N,) each pixel's group)."""
-    from matcap.refine.roughness import group_metallic, material_groups, metal_costs
+def _stage_sample(n: int, s: RefineSettings) -> np.ndarray:
+    """(S,) sorted indices of a random sample of ``roughness.sample`` of ``n`` pixels (all where fewer; ``seed``)."""
+    return np.sort(np.random.default_rng(s.seed).choice(n, size=min(n, s.roughness.sample), replace=False))
+
+
+def _metallic_vote(torch, full: _Problem, normal, base, rough, metal, choice, lights,
+                   s: RefineSettings) -> np.ndarray:
+    """(G,) each material group of ``choice`` (:class:`matcap.refine.roughness.RoughnessChoice`: its ``groups``
+    and chosen roughness) gets its metallic (:func:`matcap.refine.roughness.group_metallic`: 0, 1 or NaN) from the
+    votes of :func:`_stage_sample`'s pixels of ``full``, at their fitted maps ``normal`` (N, 3), ``base`` (N, 3),
+    ``rough`` (N,), ``metal`` (N,) torch."""
+    from matcap.refine.roughness import group_metallic, metal_costs
 
     r = s.roughness
-    groups = material_groups(base.cpu().numpy(), r.groups, s.seed)
-    sample = np.sort(np.random.default_rng(s.seed).choice(len(full), size=min(len(full), r.sample), replace=False))
+    sample = _stage_sample(len(full), s)
     t_s = torch.from_numpy(sample).to(normal.device)
-    held = torch.from_numpy(np.ascontiguousarray(chosen, np.float32)).to(normal.device)[t_s]
+    held = torch.from_numpy(np.ascontiguousarray(choice.rough[sample], np.float32)).to(normal.device)
 
     def score(obs, upper, pos, nrm, sl):
         return metal_costs(torch, obs, upper, pos, nrm, held[sl], lights, r.grid, r.noise)
 
     costs = _costs_parallel(torch, full.part(sample), normal[t_s], base[t_s], rough[t_s], metal[t_s], lights, score)
-    count = int(groups.max()) + 1 if len(groups) else 0
-    return group_metallic(costs, groups[sample], count, metal.cpu().numpy()[sample], r), groups
+    count = int(choice.groups.max()) + 1 if len(choice.groups) else 0
+    return group_metallic(costs, choice.groups[sample], count, metal.cpu().numpy()[sample], r)
 
 
 def neighbour_median(normal: np.ndarray, rows: np.ndarray, cols: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
@@ -791,8 +796,7 @@ def _object_choice(torch, full: _Problem, normal, base, rough, metal, lights, s:
     base_np, fitted = base.cpu().numpy(), rough.cpu().numpy()
     groups = material_groups(base_np, r.groups, s.seed)
     n_groups = int(groups.max()) + 1 if len(groups) else 0
-    rng = np.random.default_rng(s.seed)
-    sample = np.sort(rng.choice(len(full), size=min(len(full), r.sample), replace=False))
+    sample = _stage_sample(len(full), s)
 
     def costs(pixels):
         t = torch.from_numpy(pixels).to(normal.device)
@@ -814,7 +818,7 @@ def _object_choice(torch, full: _Problem, normal, base, rough, metal, lights, s:
         if not scored.all():
             c[:, ~scored] = costs(pixels[~scored])
         chosen[pixels], _ = follow_targets(c, fitted[pixels], target[pixels], r)
-    return RoughnessChoice(chosen, decided, targets, "object")
+    return RoughnessChoice(chosen, decided, groups, targets, "object")
 
 
 def _resolve(torch, full: _Problem, px, out: list, pixels: np.ndarray, rough: np.ndarray, weight: float, lights,

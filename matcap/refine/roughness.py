@@ -37,13 +37,14 @@ from matcap.refine.settings import RoughnessSettings
 class RoughnessChoice:
     """What the stage chose: ``rough`` (N,) float32, each pixel's roughness (0-1); ``decided`` (S,) bool, of the
     pixels scored for the targets (all N on a flat sample, a sample on an object), those whose own photos allow
-    only a narrow range; ``targets`` (G,) float, each material group's typical decided roughness (NaN: the group
-    had too few decided pixels and took the sample's on a flat sample, kept its fit on an object); ``rule``:
-    ``"plane"`` or ``"object"``; ``metallic`` (G',) each material group's metallic (:func:`group_metallic`: 0, 1
-    or NaN), or None."""
+    only a narrow range; ``groups`` (N,) int, each pixel's material group (:func:`material_groups`); ``targets``
+    (G,) float, each group's typical decided roughness (NaN: the group had too few decided pixels and took the
+    sample's on a flat sample, kept its fit on an object); ``rule``: ``"plane"`` or ``"object"``; ``metallic``
+    (G,) each group's metallic (:func:`group_metallic`: 0, 1 or NaN), or None."""
 
     rough: np.ndarray
     decided: np.ndarray
+    groups: np.ndarray
     targets: np.ndarray
     rule: str = "plane"
     metallic: np.ndarray | None = None
@@ -255,10 +256,10 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
     groups = material_groups(base, s.groups, seed)
     n_groups = int(groups.max()) + 1 if n else 0
     if not decided.any():
-        return RoughnessChoice(np.asarray(fitted, np.float32), decided, np.full(n_groups, np.nan))
+        return RoughnessChoice(np.asarray(fitted, np.float32), decided, groups, np.full(n_groups, np.nan))
     middle = np.where(decided, _vertex(costs, np.log(grid)), (lo + hi) / 2.0)
     targets = _medians(middle, decided, groups, n_groups, s.min_decided)
     target = np.log(np.where(np.isfinite(targets), targets, np.exp(np.median(middle[decided]))))[groups]
     nearest = np.where(allowed, np.abs(lg - target[None]), np.inf).argmin(axis=0)
     rough = np.where(decided, np.exp(middle), grid[nearest]).astype(np.float32)
-    return RoughnessChoice(rough, decided, targets)
+    return RoughnessChoice(rough, decided, groups, targets)
