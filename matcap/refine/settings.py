@@ -195,7 +195,7 @@ class RoughnessSettings:
     grid: tuple[float, ...] = (0.04, 0.06, 0.08, 0.1, 0.13, 0.16, 0.2, 0.25, 0.3, 0.36, 0.43, 0.5, 0.58, 0.66,
                                0.75, 0.85, 0.95)
     """Roughness values each pixel's photos are tried at."""
-    noise: float = 0.04
+    noise: float = 0.08
     """Scale of a residual in the stage's cost, as a share of the pixel's mean brightness."""
     tolerance: float = 8.0
     """A roughness is allowed where its cost is within this of the pixel's lowest (cost: sum over photos and
