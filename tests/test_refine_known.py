@@ -64,8 +64,8 @@ def test_known_lights_recover_a_glossy_sphere(glossy):
 def test_a_metal_the_solve_fitted_as_a_dielectric_is_not_voted_dielectric():
     """The two-material sphere with its lower half gold metal (base colour 0.9, 0.7, 0.4), started from a
     network-like metallic 0.1: the per-pixel solve leaves the gold in between (RMSE about 0.42), and its pixels,
-    scored with their roughness held, prefer a dielectric. The vote must not make that worse (with the roughness
-    held alone it did: 0.59), and the plastic half stays dielectric."""
+    scored with their roughness held, prefer a dielectric. The vote must not make that worse (a vote with the
+    roughness held alone did: the gold half voted dielectric), and the plastic half stays dielectric."""
     import dataclasses
 
     t0 = S.sphere_maps(48)
