@@ -726,8 +726,7 @@ def _metallic_vote(torch, full: _Problem, normal, base, rough, metal, choice, li
         return metal_costs(torch, obs, upper, pos, nrm, held[sl], lights, r.grid, r.noise)
 
     costs = _costs_parallel(torch, full.part(sample), normal[t_s], base[t_s], rough[t_s], metal[t_s], lights, score)
-    count = int(choice.groups.max()) + 1 if len(choice.groups) else 0
-    return group_metallic(costs, choice.groups[sample], count, metal.cpu().numpy()[sample], r)
+    return group_metallic(costs, choice.groups[sample], len(choice.targets), metal.cpu().numpy()[sample], r)
 
 
 def neighbour_median(normal: np.ndarray, rows: np.ndarray, cols: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
