@@ -37,7 +37,9 @@ not list it). The row ``flat plane`` is the baseline that takes every normal to 
 Scores over the whole frame: mean angular normal error (degrees); base colour RMSE in linear RGB after one
 least-squares scale per channel (the lights' absolute intensity is unknown to a capture without ``--lights``, so
 the colour's overall scale is not scored), and as "% below const." how much lower that is than the RMSE of the
-truth's own mean (the best constant); roughness RMSE (no scale) and its % below the best constant, left out
+truth's own mean (the best constant); "base level": the result's base colour over the truth's, as the factor
+that one least-squares scale over all channels would undo (a mean row gives the typical factor it is off by,
+either way, as a value of at least 1); roughness RMSE (no scale) and its % below the best constant, left out
 ("-") for sets whose roughness is a constant (standard deviation under :data:`CONSTANT_STD`). A mean row
 averages each RMSE over the sets that have it and gives "% below const." of that mean RMSE against the mean of
 the best constants' RMSEs over the same sets. "light (deg)": the median angle between the lights the result's
@@ -280,6 +282,14 @@ def scaled_rmse(pred: np.ndarray, gt: np.ndarray) -> tuple[float, list[float]]:
     return rmse(p * s, t), [float(v) for v in s]
 
 
+def base_level(pred: np.ndarray, gt: np.ndarray) -> float | None:
+    """The overall level of a base colour ``pred`` (H, W, 3) against the truth ``gt``: the factor that one
+    least-squares scale over every channel would undo (``pred`` is ``gt`` times this); None where ``pred`` is black."""
+    p, t = np.asarray(pred, np.float64).ravel(), np.asarray(gt, np.float64).ravel()
+    cross = float(np.sum(p * t))
+    return float(np.sum(p * p)) / cross if cross > 0 else None
+
+
 def constant_rmse(gt: np.ndarray) -> float:
     """RMSE of the best constant prediction (the mean, per channel for (H, W, C))."""
     g = np.asarray(gt, np.float64)
@@ -298,7 +308,8 @@ def score(result, truth: dict[str, np.ndarray], rough_constant: bool) -> dict:
     if result.base_color is not None:
         err, scales = scaled_rmse(result.base_color, truth["basecolor"])
         ref = constant_rmse(truth["basecolor"])
-        out.update(base_rmse=err, base_scale=scales, base_const_rmse=ref, base_below_pct=below(err, ref))
+        out.update(base_rmse=err, base_scale=scales, base_level=base_level(result.base_color, truth["basecolor"]), base_const_rmse=ref,
+                   base_below_pct=below(err, ref))
     if result.roughness is not None and not rough_constant:
         err = rmse(result.roughness, truth["roughness"])
         ref = constant_rmse(truth["roughness"])
@@ -398,18 +409,19 @@ def _fmt(v, spec: str) -> str:
 
 def table(rows: list[dict]) -> str:
     """Markdown table of the scored rows, then one mean row per condition and method."""
-    head = ("| set | cond | method | normal (deg) | base RMSE* | base % below const. | rough RMSE | "
+    head = ("| set | cond | method | normal (deg) | base RMSE* | base % below const. | base level | rough RMSE | "
             "rough % below const. | light (deg) | fit | capture s |")
-    lines = [head, "|" + "---|" * 3 + "---:|" * 6 + "---|---:|"]
+    lines = [head, "|" + "---|" * 3 + "---:|" * 7 + "---|---:|"]
 
     def line(r: dict) -> str:
         if r.get("status") and r["status"] != "ok":
-            return f"| {r['set']} | {r['condition']} | {r['method']} | {r['status']} | | | | | | | |"
+            return f"| {r['set']} | {r['condition']} | {r['method']} | {r['status']} | | | | | | | | |"
         s, fit = r.get("scores", {}), r.get("fit", {})
         how = "-" if not fit else ("kept networks" if fit.get("kept_network_maps") else
                                    f"fitted, {fit.get('light_model')}")
         return (f"| {r['set']} | {r['condition']} | {r['method']} | {_fmt(s.get('normal_deg'), '.2f')} | "
                 f"{_fmt(s.get('base_rmse'), '.4f')} | {_fmt(s.get('base_below_pct'), '.0f')} | "
+                f"{_fmt(s.get('base_level'), '.2f')} | "
                 f"{_fmt(s.get('rough_rmse') if 'rough_below_pct' in s else None, '.4f')} | "
                 f"{_fmt(s.get('rough_below_pct'), '.0f')} | {_fmt(fit.get('light_deg'), '.1f')} | {how} | "
                 f"{_fmt(r.get('capture_s'), '.0f')} |")
@@ -443,6 +455,9 @@ def means(rows: list[dict]) -> list[dict]:
                 ref = float(np.mean([x[f"{part}_const_rmse"] for x in have]))
                 agg.update({f"{part}_rmse": err, f"{part}_const_rmse": ref, f"{part}_below_pct": below(err, ref),
                             f"{part}_sets": len(have)})
+        levels = [r["scores"]["base_level"] for r in group if r["scores"].get("base_level")]
+        if levels:  # the typical factor by which the base colour's level is off, either way
+            agg["base_level"] = float(np.exp(np.mean(np.abs(np.log(levels)))))
         secs = [r["capture_s"] for r in group if r.get("capture_s") is not None]
         light = [r["fit"]["light_deg"] for r in group if (r.get("fit") or {}).get("light_deg") is not None]
         kept = sum(bool((r.get("fit") or {}).get("kept_network_maps")) for r in group)
@@ -527,9 +542,10 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="flat_check-"))
     work.mkdir(parents=True, exist_ok=True)
-    has_flat = flat_available() if any(m.startswith("flat") for m in args.methods) else False
-    print(f"work folder {work}; --flat {'available' if has_flat else 'not available'} in matcap capture",
-          flush=True)
+    wants_flat = any(m.startswith("flat") for m in args.methods)
+    has_flat = flat_available() if wants_flat else False
+    print(f"work folder {work}" + (f"; --flat {'available' if has_flat else 'not available'} in matcap capture"
+                                   if wants_flat else ""), flush=True)
     from matcap.formats import read_result
 
     rows: list[dict] = []
@@ -567,7 +583,8 @@ def main(argv=None) -> int:
                 _write_json(args, work, rows)
     print()
     print("base RMSE*: linear RGB after one least-squares scale per channel (the lights' absolute intensity is "
-          "unknown to a capture); % below const.: lower than the RMSE of the truth's mean by this much; rough: "
+          "unknown to a capture); % below const.: lower than the RMSE of the truth's mean by this much; base level: "
+          "the result's base colour over the truth's (mean rows: the typical factor off, either way); rough: "
           "'-' where the set's roughness is a constant; light: median angle of the result's lights from the true ones")
     print(table(rows))
     if args.json:

@@ -952,7 +952,7 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     held: dict[str, float | int] = {f"priors.{'metal' if k == 'metallic' else 'rough'}": 1e4
                                      for k in (constants or {})}
     if "roughness" in (constants or {}):
-        held["roughness.iters"] = 0  # no roughness to choose
+        held["roughness.choose"] = False  # no roughness to choose (the metallic vote stays)
     if "metallic" in (constants or {}):
         held["roughness.metallic_hold"] = 0.0  # no metallic to vote on
     if held:  # constant maps stay where the caller put them

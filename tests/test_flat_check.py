@@ -155,6 +155,8 @@ def test_scores_on_constructed_maps():
     s = F.score(result, truth, rough_constant=False)
     assert s["normal_deg"] == pytest.approx(12.0, abs=1e-4)
     assert s["base_rmse"] == pytest.approx(0.0, abs=1e-6) and s["base_below_pct"] == pytest.approx(100.0)
+    assert s["base_level"] == pytest.approx(3.0, rel=1e-5)  # the result's base colour is 3x the truth's
+    assert F.base_level(base * np.float32([2.0, 2.0, 0.0]), base) > 1.0 and F.base_level(0 * base, base) is None
     assert s["rough_rmse"] == pytest.approx(0.5) and s["rough_below_pct"] == pytest.approx(0.0, abs=1e-9)
     assert "rough_below_pct" not in F.score(result, truth, rough_constant=True)
     assert F.flat_baseline({"normal": pred_n})["normal_deg"] == pytest.approx(12.0, abs=1e-4)
@@ -165,11 +167,14 @@ def test_means_and_table():
              "scores": {"normal_deg": v, "base_rmse": 0.1, "base_const_rmse": 0.2, "base_below_pct": 50.0}}
             for s, v in (("a", 2.0), ("b", 4.0))]
     rows.append({"set": "a", "condition": "near", "method": "flat", "status": "not available", "capture_s": None})
+    rows[0]["scores"]["base_level"], rows[1]["scores"]["base_level"] = 2.0, 0.5  # off by 2x either way
     (m,) = F.means(rows)
     assert m["scores"]["normal_deg"] == pytest.approx(3.0) and m["set"] == "mean of 2"
+    assert m["scores"]["base_level"] == pytest.approx(2.0)
     assert m["scores"]["base_below_pct"] == pytest.approx(50.0)
     text = F.table(rows)
     assert "| a | near | flat | not available |" in text and "| mean of 2 | near | default | 3.00 |" in text
+    assert "| a | near | default | 2.00 | 0.1000 | 50 | 2.00 |" in text
 
 
 @pytest.mark.parametrize("argv", [["--size", "4"], ["--sets", "nope"], ["--conditions", "dim"],

@@ -9,7 +9,8 @@ import pytest
 
 from conftest import shared_path
 
-from matcap.refine.roughness import choose_roughness, follow_targets, group_metallic, material_groups, object_targets
+from matcap.refine.roughness import (choose_roughness, follow_targets, group_metallic, held_metallic, material_groups,
+                                     object_targets)
 from matcap.refine.settings import RoughnessSettings
 
 GRID = RoughnessSettings().grid
@@ -194,3 +195,11 @@ def test_metal_costs_tell_a_rendered_metal_from_a_dielectric():
     for dielectric, metal_row in ((0, 1), (2, 3)):
         d = c[metal_row] - c[dielectric]
         assert (d[is_metal] < -8).mean() > 0.9 and (d[~is_metal] > 8).mean() > 0.9, (d[is_metal], d[~is_metal])
+
+
+def test_held_metallic_is_the_vote_where_there_is_one_else_the_networks():
+    groups = np.array([0, 1, 2, 2, 1, 0])
+    prior = np.float32([0.1, 0.6, 0.3, 0.9, 0.2, 0.4])  # the networks' metallic per pixel
+    held = held_metallic(np.float32([1.0, np.nan, 0.0]), groups, prior)
+    assert held.dtype == np.float32 and held.shape == (6,)
+    np.testing.assert_array_equal(held, np.float32([1.0, 0.6, 0.0, 0.0, 0.2, 1.0]))

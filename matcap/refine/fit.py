@@ -668,15 +668,20 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     its pixels vote for it (:func:`_metallic_vote`); then the per-pixel solve again for the pixels whose roughness
     the choice moved by more than ``roughness.moved`` (a factor) or whose metallic lies more than
     ``roughness.metallic_moved`` from their group's, from the chosen values held by priors of weight
-    ``roughness.hold`` and ``roughness.metallic_hold`` (a group without a clear vote holds each pixel's fitted
-    metallic); a pixel re-solved for its metallic alone keeps its normal. The others keep their fit.
+    ``roughness.hold`` and ``roughness.metallic_hold`` (a group without a clear vote holds the networks' metallic,
+    the prior's); a pixel re-solved for its metallic alone keeps its normal. The others keep their fit.
     Returns (the new :class:`PixelParams`, the :class:`matcap.refine.roughness.RoughnessChoice`)."""
-    from matcap.refine.roughness import choose_roughness
+    from matcap.refine.roughness import RoughnessChoice, choose_roughness, held_metallic, material_groups
 
     r = s.roughness
     with torch.no_grad():
         normal, base, rough, metal = px.normal(), px.base(), px.rough(), px.metal()
-    if plane:
+    if not r.choose:  # the roughness is held (a constant): only the metallic vote needs the material groups
+        groups = material_groups(base.cpu().numpy(), r.groups, s.seed)
+        count = int(groups.max()) + 1 if len(groups) else 0
+        choice = RoughnessChoice(rough.cpu().numpy().astype(np.float32), np.zeros(0, bool), groups,
+                                 np.full(count, np.nan), "held")
+    elif plane:
         costs = _grid_costs_parallel(torch, full, normal, base, rough, metal, lights, r)
         choice = choose_roughness(costs, base.cpu().numpy(), rough.cpu().numpy(), r, s.seed)
     else:
@@ -687,14 +692,14 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     if r.metallic_hold > 0:
         choice.metallic = _metallic_vote(torch, full, normal, base, rough, metal, choice, lights, s)
         fitted_metal = metal.cpu().numpy()
-        voted = choice.metallic[choice.groups]
-        held_metal = np.where(np.isnan(voted), fitted_metal, voted)
+        held_metal = held_metallic(choice.metallic, choice.groups, full.m0.cpu().numpy())
         metal_only = (np.abs(held_metal - fitted_metal) > r.metallic_moved) & ~moved
         moved |= metal_only
     out = [t.detach().clone() for t in px.tensors()]
     pixels = np.flatnonzero(moved)
     if len(pixels):
-        _resolve(torch, full, px, out, pixels, choice.rough[pixels], r.hold, lights, s, bar, mixing,
+        hold = r.hold if r.choose else s.priors.rough  # a held roughness keeps its prior's weight
+        _resolve(torch, full, px, out, pixels, choice.rough[pixels], hold, lights, s, bar, mixing,
                  None if held_metal is None else held_metal[pixels], r.metallic_hold)
     if held_metal is not None:  # a pixel re-solved for its metallic alone keeps the normal the per-pixel solve gave
         keep = torch.from_numpy(np.flatnonzero(metal_only)).to(out[0].device)

@@ -36,11 +36,13 @@ from matcap.refine.settings import RoughnessSettings
 @dataclass
 class RoughnessChoice:
     """What the stage chose: ``rough`` (N,) float32, each pixel's roughness (0-1); ``decided`` (S,) bool, of the
-    pixels scored for the targets (all N on a flat sample, a sample on an object), those whose own photos allow
-    only a narrow range; ``groups`` (N,) int, each pixel's material group (:func:`material_groups`); ``targets``
-    (G,) float, each group's typical decided roughness (NaN: the group had too few decided pixels and took the
-    sample's on a flat sample, kept its fit on an object); ``rule``: ``"plane"`` or ``"object"``; ``metallic``
-    (G,) each group's metallic (:func:`group_metallic`: 0, 1 or NaN), or None."""
+    pixels scored for the targets (all N on a flat sample, a sample on an object, none where the roughness is
+    held), those whose own photos allow only a narrow range; ``groups`` (N,) int, each pixel's material group
+    (:func:`material_groups`); ``targets`` (G,) float, each group's typical decided roughness (NaN: the group had
+    too few decided pixels and took the sample's on a flat sample, kept its fit on an object); ``rule``:
+    ``"plane"``, ``"object"`` or ``"held"`` (:attr:`matcap.refine.settings.RoughnessSettings.choose` off: every
+    pixel kept its fitted roughness); ``metallic`` (G,) each group's metallic (:func:`group_metallic`: 0, 1 or
+    NaN), or None."""
 
     rough: np.ndarray
     decided: np.ndarray
@@ -128,7 +130,7 @@ def metal_costs(torch, obs, upper, pos, normal, rough, lights, grid, noise: floa
 def group_metallic(costs: np.ndarray, groups: np.ndarray, count: int, fitted: np.ndarray,
                    s: RoughnessSettings) -> np.ndarray:
     """(G,) float32, each material group's metallic: 0 or 1 where its pixels' photos vote for it, NaN where they do
-    not (the group keeps its fitted metallic).
+    not (the fit then holds the networks' metallic for the group's pixels).
 
     costs: (4, N) :func:`metal_costs` of N pixels; groups: (N,) int in [0, count); fitted: (N,) their fitted
     metallic. A pixel votes metal where its cost as a metal is lower than as a dielectric by more than
@@ -157,6 +159,15 @@ def group_metallic(costs: np.ndarray, groups: np.ndarray, count: int, fitted: np
         if said[0] == said[1]:
             out[g] = said[0]
     return out
+
+
+def held_metallic(group_metal: np.ndarray, groups: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """(N,) float32, the metallic the last solve holds each pixel to: its material group's (``group_metal`` (G,),
+    :func:`group_metallic`: 0, 1 or NaN; ``groups`` (N,) int) where the group's photos voted, else the networks'
+    (``prior`` (N,), the fit's prior). Where the photos do not decide, a pixel's own fit is the worse guess: it
+    drifts toward metal wherever the model misses a stronger specular, a cast shadow or an interreflection."""
+    voted = np.asarray(group_metal, np.float32)[np.asarray(groups)]
+    return np.where(np.isnan(voted), np.asarray(prior, np.float32), voted).astype(np.float32)
 
 
 def material_groups(base: np.ndarray, count: int, seed: int, sample: int = 20000, iters: int = 20) -> np.ndarray:

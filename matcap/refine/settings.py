@@ -192,6 +192,9 @@ class RoughnessSettings:
     iters: int = 10
     """Levenberg-Marquardt iterations of the last solve; 0 skips the stage (roughness as the per-pixel solve left
     it)."""
+    choose: bool = True
+    """False: every pixel keeps the roughness the per-pixel solve gave it (``--constant roughness=V`` holds V through
+    the fit); the stage still votes each material's metallic."""
     grid: tuple[float, ...] = (0.04, 0.06, 0.08, 0.1, 0.13, 0.16, 0.2, 0.25, 0.3, 0.36, 0.43, 0.5, 0.58, 0.66,
                                0.75, 0.85, 0.95)
     """Roughness values each pixel's photos are tried at."""
@@ -218,10 +221,10 @@ class RoughnessSettings:
     metallic_hold: float = 5.0
     """Weight of (m - m_group)^2 in the last solve, m_group each material group's metallic, 0 or 1, as the photos
     of a sample of its pixels vote (:func:`matcap.refine.roughness.group_metallic`; a group whose vote is not
-    clear holds each pixel's fitted metallic); 0 leaves metallic free as in the per-pixel solve."""
+    clear holds the networks' metallic, the prior's); 0 leaves metallic free as in the per-pixel solve."""
     metallic_moved: float = 0.1
-    """The last solve also takes the pixels whose fitted metallic differs from their group's by more than this
-    (such a pixel keeps the normal the per-pixel solve gave it)."""
+    """The last solve also takes the pixels whose fitted metallic differs from the one held (their group's, or
+    the networks') by more than this (such a pixel keeps the normal the per-pixel solve gave it)."""
 
 
 @dataclass
