@@ -308,8 +308,8 @@ def score(result, truth: dict[str, np.ndarray], rough_constant: bool) -> dict:
     if result.base_color is not None:
         err, scales = scaled_rmse(result.base_color, truth["basecolor"])
         ref = constant_rmse(truth["basecolor"])
-        out.update(base_rmse=err, base_scale=scales, base_level=base_level(result.base_color, truth["basecolor"]), base_const_rmse=ref,
-                   base_below_pct=below(err, ref))
+        out.update(base_rmse=err, base_scale=scales, base_level=base_level(result.base_color, truth["basecolor"]),
+                   base_const_rmse=ref, base_below_pct=below(err, ref))
     if result.roughness is not None and not rough_constant:
         err = rmse(result.roughness, truth["roughness"])
         ref = constant_rmse(truth["roughness"])
