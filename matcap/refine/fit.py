@@ -667,9 +667,11 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     object's, :func:`_object_choice`) and each material group's metallic, 0 or 1, where the photos of a sample of
     its pixels vote for it (:func:`_metallic_vote`); then the per-pixel solve again for the pixels whose roughness
     the choice moved by more than ``roughness.moved`` (a factor) or whose metallic lies more than
-    ``roughness.metallic_moved`` from their group's, from the chosen values held by priors of weight
+    ``roughness.metallic_moved`` from the one held (their group's), from the chosen values held by priors of weight
     ``roughness.hold`` and ``roughness.metallic_hold`` (a group without a clear vote holds the networks' metallic,
-    the prior's); a pixel re-solved for its metallic alone keeps its normal. The others keep their fit.
+    the prior's); a pixel re-solved for its metallic alone keeps its normal. The others keep their fit. With
+    ``roughness.choose`` off nothing is chosen: every pixel keeps its roughness (held at ``priors.rough``), and
+    only the metallic vote runs.
     Returns (the new :class:`PixelParams`, the :class:`matcap.refine.roughness.RoughnessChoice`)."""
     from matcap.refine.roughness import RoughnessChoice, choose_roughness, held_metallic, material_groups
 
