@@ -377,3 +377,20 @@ def test_second_looks_run_in_order_and_gate(monkeypatch, radii, near_share, glos
         assert ("ambient of 6%" in lin["reason"]) == (near_share == 0.061), lin["reason"]
     else:
         assert lin["near_fit"]["ambient_share"] == near_share and lin["reason_near"]
+
+
+def test_settings_replace_checks_each_value_against_its_setting():
+    from matcap.refine import RefineSettings
+
+    s = RefineSettings().replace({"lights.iters": 200, "loss.shadow": 0, "candidates.glossy": "false",
+                                  "roughness.choose": False, "roughness.grid": [0.1, 0.5], "seed": 3})
+    assert s.lights.iters == 200 and s.loss.shadow == 0.0 and isinstance(s.loss.shadow, float)
+    assert s.candidates.glossy is False and s.roughness.choose is False and s.roughness.grid == (0.1, 0.5)
+    assert s.seed == 3 and RefineSettings().replace({"candidates.glossy": "True"}).candidates.glossy is True
+    for key, value, words in (("roughness.choose", "no", "true or false"), ("lights.iters", 2.5, "a whole number"),
+                              ("model.light", 3, "a string"), ("loss.cauchy", True, "a number"),
+                              ("roughness.grid", ["a"], "a list of numbers")):
+        with pytest.raises(MatcapError, match=f"fit setting '{key}' takes {words}"):
+            RefineSettings().replace({key: value})
+    with pytest.raises(MatcapError, match="no fit setting 'lights.nope'"):
+        RefineSettings().replace({"lights.nope": 1})

@@ -7,6 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from matcap.errors import MatcapError
 
 
@@ -247,7 +249,7 @@ class RefineSettings:
 
     def replace(self, changes: dict[str, Any]) -> "RefineSettings":
         """A copy with ``changes`` made: keys "group.field" (``{"lights.iters": 0}``) or "seed" / "device"; a
-        MatcapError names an unknown key."""
+        MatcapError names an unknown key, or a value of another kind than the setting's (:func:`_checked`)."""
         import dataclasses
 
         groups: dict[str, dict[str, Any]] = {}
@@ -258,6 +260,8 @@ class RefineSettings:
             if group not in names or bool(name) != dataclasses.is_dataclass(getattr(self, group)) or (
                     name and name not in {f.name for f in dataclasses.fields(getattr(self, group))}):
                 raise MatcapError(f"no fit setting {key!r} (settings: {', '.join(_setting_keys(self))})")
+            current = getattr(getattr(self, group), name) if name else getattr(self, group)
+            value = _checked(key, current, value)
             if name:
                 groups.setdefault(group, {})[name] = value
             else:
@@ -273,6 +277,31 @@ class RefineSettings:
         kinds = {f.name: f.default_factory for f in dataclasses.fields(cls)
                  if f.default_factory is not dataclasses.MISSING}
         return cls(**{k: kinds[k](**v) if k in kinds else v for k, v in d.items()})
+
+
+def _checked(key: str, current: Any, value: Any) -> Any:
+    """``value`` for the setting ``key`` whose value is now ``current``, of the same kind: a bool for a switch
+    (or the words "true" / "false", as ``--set`` gives them; any other string would read as true), a whole
+    number for a count, a number for a float (as a float), a string for a choice, a sequence of numbers for a grid
+    (as a tuple). A MatcapError names the key otherwise."""
+    import numbers
+
+    if isinstance(current, bool) and isinstance(value, str) and value.lower() in ("true", "false"):
+        return value.lower() == "true"
+    kinds = ((bool, lambda v: isinstance(v, (bool, np.bool_)), bool, "true or false"),
+             (int, lambda v: isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)), int,
+              "a whole number"),
+             (float, lambda v: isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)), float,
+              "a number"),
+             (str, lambda v: isinstance(v, str), str, "a string"),
+             (tuple, lambda v: isinstance(v, (tuple, list)) and all(
+                 isinstance(x, numbers.Real) and not isinstance(x, bool) for x in v), tuple, "a list of numbers"))
+    for kind, accepts, convert, words in kinds:
+        if isinstance(current, kind):
+            if not accepts(value):
+                raise MatcapError(f"fit setting {key!r} takes {words}, not {value!r}")
+            return convert(value)
+    return value
 
 
 def _setting_keys(s: RefineSettings) -> list[str]:
