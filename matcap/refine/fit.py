@@ -673,16 +673,13 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     ``roughness.choose`` off nothing is chosen: every pixel keeps its roughness (held at ``priors.rough``), and
     only the metallic vote runs.
     Returns (the new :class:`PixelParams`, the :class:`matcap.refine.roughness.RoughnessChoice`)."""
-    from matcap.refine.roughness import RoughnessChoice, choose_roughness, held_metallic, material_groups
+    from matcap.refine.roughness import choose_roughness, held_metallic, held_roughness
 
     r = s.roughness
     with torch.no_grad():
         normal, base, rough, metal = px.normal(), px.base(), px.rough(), px.metal()
-    if not r.choose:  # the roughness is held (a constant): only the metallic vote needs the material groups
-        groups = material_groups(base.cpu().numpy(), r.groups, s.seed)
-        count = int(groups.max()) + 1 if len(groups) else 0
-        choice = RoughnessChoice(rough.cpu().numpy().astype(np.float32), np.zeros(0, bool), groups,
-                                 np.full(count, np.nan), "held")
+    if not r.choose:
+        choice = held_roughness(base.cpu().numpy(), rough.cpu().numpy(), r, s.seed)
     elif plane:
         costs = _grid_costs_parallel(torch, full, normal, base, rough, metal, lights, r)
         choice = choose_roughness(costs, base.cpu().numpy(), rough.cpu().numpy(), r, s.seed)

@@ -249,6 +249,15 @@ def follow_targets(costs: np.ndarray, fitted: np.ndarray, target: np.ndarray, s:
     return np.where(decided, fitted, grid[nearest]).astype(np.float32), decided
 
 
+def held_roughness(base: np.ndarray, fitted: np.ndarray, s: RoughnessSettings, seed: int) -> RoughnessChoice:
+    """The choice where the roughness is held (``s.choose`` off, a constant roughness): every pixel keeps its
+    fitted roughness (N,), nothing is decided, and the pixels fall into their material groups (by their fitted
+    base colour (N, 3), :func:`material_groups`) for the metallic vote alone; rule ``"held"``."""
+    groups = material_groups(base, s.groups, seed)
+    count = int(groups.max()) + 1 if len(groups) else 0
+    return RoughnessChoice(np.asarray(fitted, np.float32), np.zeros(0, bool), groups, np.full(count, np.nan), "held")
+
+
 def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s: RoughnessSettings,
                      seed: int) -> RoughnessChoice:
     """Each pixel's roughness from its grid costs (:func:`grid_costs`, (G, N)), its fitted base colour (N, 3) and
