@@ -44,7 +44,9 @@ class KnownLights:
         held point lights (a previous capture's near lamps), else None; ``directions`` are then toward the
         object's centre;
     source: "file", "ball" or "estimated" (a flat sample's lamps, found from their falloff); path: the file read
-        ("" where none was); matched: how rows met photos ("name", "order", "names.txt").
+        ("" where none was); matched: how rows met photos ("name", "order", "names.txt");
+    ambient: (K, 9, 3) the SH ambient radiance each photo was taken under, in the intensities' units (a
+        ``lights.json``'s ``sh``), where the file gives intensities; else None.
     """
 
     directions: np.ndarray
@@ -53,6 +55,7 @@ class KnownLights:
     path: str
     matched: str
     positions: np.ndarray | None = None
+    ambient: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.directions)
@@ -62,12 +65,14 @@ class KnownLights:
         idx = np.asarray(index, int)
         pick = lambda a: None if a is None else a[idx]  # noqa: E731
         return KnownLights(self.directions[idx], pick(self.intensities), self.source, self.path, self.matched,
-                           pick(self.positions))
+                           pick(self.positions), pick(self.ambient))
 
     def record(self) -> dict:
         """capture.json / fit.json summary."""
         return {"source": self.source, "file": self.path or None, "matched_by": self.matched,
                 "intensities": "given" if self.intensities is not None else "fitted",
+                "ambient": "given" if self.ambient is not None else ("none" if self.intensities is not None
+                                                                    else "fitted"),
                 "kind": "point" if self.positions is not None else "directional"}
 
 
@@ -82,13 +87,14 @@ def natural_key(name: str):
 @dataclass
 class _Rows:
     """Rows of a light file before matching: directions (R, 3) raw, intensities (R, 3) or None, names (R) or
-    None, positions (R, 3) or None, line numbers (R) for messages."""
+    None, positions (R, 3) or None, line numbers (R) for messages, ambient (R, 9, 3) or None."""
 
     directions: np.ndarray
     intensities: np.ndarray | None
     names: list[str] | None
     positions: np.ndarray | None
     lines: list[int]
+    ambient: np.ndarray | None = None
 
 
 def _numbers(path: Path, lineno: int, fields: list[str]) -> list[float]:
@@ -201,10 +207,13 @@ def _read_json(path: Path) -> tuple[_Rows, str]:
     intens = None if any(i is None for i in ints) else np.array(ints, np.float64)
     if intens is not None and doc.get("intensity_known") is False:  # a calibration that could not tell them
         intens = None
+    # the ambient is taken only beside given intensities: in their units, it is known only relative to them
+    sh = [e.get("sh") for e in images]
+    ambient = None if intens is None or any(a is None for a in sh) else np.array(sh, np.float64)
     source = "ball" if doc.get("source") == "ball" else "file"
     return _Rows(np.array(dirs, np.float64), intens,
                  names if all(isinstance(n, str) for n in names) else None, positions,
-                 [e.get("index", i) for i, e in enumerate(images)]), source
+                 [e.get("index", i) for i, e in enumerate(images)], ambient), source
 
 
 def _check_intensities(path: Path, intens: np.ndarray, lines: list[int]) -> None:
@@ -317,4 +326,4 @@ def read_light_file(path: str | os.PathLike, photos: Sequence[str], source: str 
         matched = "order"
     pick = lambda a: None if a is None else np.asarray(a, np.float64)[idx]  # noqa: E731
     return KnownLights(directions[idx], pick(rows.intensities), source or found_source, str(p), matched,
-                       pick(positions))
+                       pick(positions), pick(rows.ambient))

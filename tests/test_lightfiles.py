@@ -90,12 +90,28 @@ def test_lights_json_round_trip_and_order_fallback(tmp_path):
     np.testing.assert_allclose(known.directions, UNIT, atol=1e-6)
     np.testing.assert_allclose(known.intensities[:, 0], [1, 2, 3, 4])
     assert known.source == "ball" and known.matched == "name"
+    assert known.ambient.shape == (4, 9, 3) and not known.ambient.any()  # the file's ambient: none
+    assert known.subset([1]).ambient.shape == (1, 9, 3)
     other = [f"chrome.{i}.png" for i in range(4)]
     cal = [dict(e, file=other[i]) for i, e in enumerate(entries)]
     write_lights(tmp_path / "rig.json", cal)
     known = read_light_file(tmp_path / "rig.json", ["owl.0.png", "owl.1.png", "owl.2.png", "owl.3.png"])
     np.testing.assert_allclose(known.directions, UNIT, atol=1e-6)
     assert known.matched == "order" and known.source == "file"
+
+
+def test_lights_json_ambient_only_beside_intensities(tmp_path):
+    """A lights.json's SH ambient is read, by photo, where the file gives intensities; a calibration that could
+    not tell the intensities (``intensity_known`` false) gives no ambient either."""
+    entries = [{"index": i, "file": PHOTOS[i], "kind": "directional", "direction": list(DIRS[i]),
+                "intensity": [2.0, 2.0, 2.0], "sh": [[0.1 * (i + 1)] * 3] + [[0.0] * 3] * 8} for i in range(4)]
+    write_lights(tmp_path / "lights.json", entries)
+    known = read_light_file(tmp_path / "lights.json", PHOTOS)
+    np.testing.assert_allclose(known.ambient[:, 0, 0], [0.1, 0.2, 0.3, 0.4])
+    assert known.record()["ambient"] == "given"
+    write_lights(tmp_path / "rig.json", entries, intensity_known=False)
+    rig = read_light_file(tmp_path / "rig.json", PHOTOS)
+    assert rig.intensities is None and rig.ambient is None and rig.record()["ambient"] == "fitted"
 
 
 def test_subset_follows_the_pick(tmp_path):

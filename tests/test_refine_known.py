@@ -185,18 +185,28 @@ def test_start_normals_fall_back_to_the_networks_where_lambertian_fails():
     assert moved.mean() > 5.0, moved.mean()  # least squares moved them off the networks' (0, 0, 1)
 
 
-def test_given_relative_intensities_move_only_one_scale(glossy):
-    """Given relative intensities keep their ratios and their colours: one overall scale is fitted."""
+def test_given_intensities_and_ambient_are_taken_at_one_scale(glossy):
+    """Given intensities keep their ratios and their colours, and a given ambient keeps its ratio to them: one
+    overall scale (least squares) is all that is found; without a given ambient there is none."""
+    import dataclasses
+
     truth, lights, photos, start = glossy
-    quick = RefineSettings(seed=0).replace({"lights.known_iters": 60, "pixels.coarse_iters": 0,
-                                            "pixels.fine_iters": 5})
-    res = refine(photos, start, quick, lights=_known(lights, intensities=True))
+    quick = RefineSettings(seed=0).replace({"pixels.coarse_iters": 0, "pixels.fine_iters": 5})
+    known = _known(lights, intensities=True)
+    sh = np.zeros((len(lights), 9, 3))
+    sh[:, 0] = 0.05 / 0.28209479  # the render's uniform ambient radiance 0.05, as SH
+    res = refine(photos, start, quick, lights=dataclasses.replace(known, ambient=sh))
     given = np.array([l.irradiance for l in lights])  # tinted: each lamp its own colour
     assert (given.std(1) / given.mean(1)).max() > 0.02
     ratio = np.array([e["intensity"] for e in res.lights]) / given
     assert ratio.std() / ratio.mean() < 1e-4, ratio  # the given ratios and colours, exactly
-    assert res.report["lights"]["intensities"] == "given"
+    np.testing.assert_allclose(np.array(res.lights[0]["sh"]) / sh[0].clip(1e-9), np.where(sh[0] > 0, ratio.mean(), 0),
+                               rtol=1e-4)
+    assert res.report["lights"]["intensities"] == "given" and res.report["lights"]["ambient"] == "given"
+    assert res.report["iterations"]["lights"] == 0
     assert res.report["smooth_tilt_removed_sigma_widths"] is None  # given lights keep every tilt
+    plain = refine(photos, start, quick, lights=known)
+    assert not np.any(np.array(plain.lights[0]["sh"])) and plain.report["lights"]["ambient"] == "none"
 
 
 def test_capture_with_known_lights_round_trips(tmp_path, tiny_weights):

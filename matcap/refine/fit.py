@@ -531,7 +531,9 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     Stages: (1) lights: the given directions (and point-light positions) are held; the per-photo intensities (or,
     where the file gives relative intensities, one overall scale, their colours held) and one ambient shared by
     every photo are fitted, first by least squares, then jointly with a subsample's maps under the Principled
-    model (``lights.known_iters`` or ``lights.iters`` Adam steps); the start normals come from
+    model (``lights.iters`` Adam steps). Distant lights whose intensities the file gives are taken as they are,
+    at the least-squares scale, with the file's ambient (a ``lights.json``'s ``sh``; else none) at that scale;
+    the start normals come from
     semi-calibrated Lambertian least squares (:func:`known_irradiance`); (2) the per-pixel solve
     (:func:`_solve_maps`) from calibrated photometric-stereo normals, then the roughness stage
     (:func:`_roughness_stage`); (3) outputs. With the lights known there is
@@ -599,10 +601,17 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     given_log = None
     if given is not None:  # relative intensities: start from them at the least-squares overall scale
         given_log = torch.as_tensor(np.log(np.maximum(given, 1e-12)), dtype=torch.float32, device=device)
-        lights.log_intensity = given_log + (lights.log_intensity - given_log).mean()
-    light_iters = s.lights.known_iters if inv_distance is None and given is not None else s.lights.iters
-    lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", light_iters, directions_free=False,
-                            relative_to=given_log)
+        offset = (lights.log_intensity - given_log).mean()
+        lights.log_intensity = given_log + offset
+        if known.ambient is not None and s.model.ambient != "none":  # the file's ambient, at the same scale
+            amb = np.asarray(known.ambient, np.float64)
+            amb = amb if s.model.ambient == "per-image" else amb.mean(0, keepdims=True)
+            lights.sh = torch.as_tensor(amb, dtype=torch.float32, device=device) * offset.exp()
+    # distant lights whose intensities are given are taken as they are; the others are fitted
+    light_iters = 0 if inv_distance is None and given is not None else s.lights.iters
+    if light_iters:
+        lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", light_iters, directions_free=False,
+                                relative_to=given_log)
     timings["lights_s"] = time.perf_counter() - t0
 
     # ---- 2. per pixel

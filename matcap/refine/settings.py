@@ -82,11 +82,6 @@ class LightStageSettings:
     """Adam steps of the light fit (and of a near-lamp fit's distances)."""
     kept_iters: int = 200
     """Adam steps of the light fit where the maps are kept (the lights are fitted to the networks' maps)."""
-    known_iters: int = 50
-    """Adam steps of the light fit for distant lights whose directions and relative intensities are both given:
-    only one overall scale and the ambient move, a short adjustment of their least-squares start (the ambient
-    starts at zero). Other known lights (each photo's intensity fitted, or lamps at known positions) take
-    ``iters`` steps."""
     lr: float = 0.02
     """Adam step size of the light parameters (directions, log intensities, ambient, inverse distances)."""
     lr_pixel: float = 0.05
