@@ -609,6 +609,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
             lights.sh = torch.as_tensor(amb, dtype=torch.float32, device=device) * offset.exp()
     # distant lights whose intensities are given are taken as they are; the others are fitted
     light_iters = 0 if inv_distance is None and given is not None else s.lights.iters
+    ambient = ("none" if s.model.ambient == "none" else "fitted" if light_iters > 0
+               else "given" if known.ambient is not None else "none")  # what fit.json says of it
     if light_iters:
         lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", light_iters, directions_free=False,
                                 relative_to=given_log)
@@ -642,7 +644,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     timings["outputs_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     report = {
-        "lights": {**known.record(), "directions": "held", "solved_fraction": photo_report["solved_fraction"]},
+        "lights": {**known.record(), "directions": "held", "ambient": ambient,
+                   "solved_fraction": photo_report["solved_fraction"]},
         **({"flat": flat} if flat is not None else {}),
         "psnr_db": [round(p, 3) for p in out.psnr],
         "psnr_db_mean": round(float(np.mean(out.psnr)), 3),
