@@ -394,3 +394,29 @@ def test_settings_replace_checks_each_value_against_its_setting():
             RefineSettings().replace({key: value})
     with pytest.raises(MatcapError, match="no fit setting 'lights.nope'"):
         RefineSettings().replace({"lights.nope": 1})
+
+
+def test_the_light_fits_adam_steps_as_torch_optim_adam():
+    """The light fit's Adam (torch's functional update, without the optimizer class) equals torch.optim.Adam bit
+    for bit: two groups at their own step sizes, a parameter without a gradient left as it is."""
+    import torch
+
+    from matcap.refine.fit import _Adam
+
+    def run(make):
+        g = torch.Generator().manual_seed(0)
+        a = torch.randn(5, 3, generator=g).requires_grad_(True)
+        b = torch.randn(7, generator=g).requires_grad_(True)
+        c = torch.randn(2, generator=g).requires_grad_(True)  # not in the loss
+        opt = make([a, c], b)
+        for i in range(60):
+            opt.zero_grad()
+            loss = ((a - 1.5) ** 2).sum() * (1 + i % 3) + (b.sin() ** 2).sum()
+            loss.backward()
+            opt.step()
+        return a.detach(), b.detach(), c.detach()
+
+    ours = run(lambda ac, b: _Adam(torch, [(ac, 0.02), ([b], 0.05)]))
+    theirs = run(lambda ac, b: torch.optim.Adam([{"params": ac, "lr": 0.02}, {"params": [b], "lr": 0.05}]))
+    assert all(torch.equal(p, q) for p, q in zip(ours, theirs))
+    assert not torch.equal(ours[0], torch.randn(5, 3, generator=torch.Generator().manual_seed(0)))

@@ -57,24 +57,41 @@ def test_no_decided_pixel_keeps_the_fitted_roughness():
     assert not choice.decided.any()
 
 
-def test_an_objects_targets_come_only_from_its_own_decided_pixels():
+def test_an_objects_targets_come_from_its_own_decided_pixels_and_the_typical_from_all():
     s = RoughnessSettings(min_decided=5)
-    # group 0: 10 pixels decided at 0.3 and 10 ambiguous; group 1: 2 decided at 0.1 (too few) and 10 ambiguous
-    costs = np.concatenate([_costs(10, [0.3]), _costs(10, [0.06, 0.75]), _costs(2, [0.1]),
+    # group 0: 6 pixels decided at 0.3 and 10 ambiguous; group 1: 6 decided at 0.1; group 2: 3 decided at 0.06
+    # (too few for a target of its own) and 10 ambiguous; the typical roughness: the median of all 15, 0.1
+    costs = np.concatenate([_costs(6, [0.3]), _costs(10, [0.06, 0.75]), _costs(6, [0.1]), _costs(3, [0.06]),
                             _costs(10, [0.06, 0.75])], axis=1)
-    groups = np.array([0] * 20 + [1] * 12)
-    targets, decided = object_targets(costs, groups, 2, s)
-    assert decided[:10].all() and not decided[10:20].any() and decided[20:22].all()
-    assert abs(targets[0] - 0.3) < 0.015 and np.isnan(targets[1]), targets
+    groups = np.array([0] * 16 + [1] * 6 + [2] * 13)
+    targets, typical, decided = object_targets(costs, groups, 3, s)
+    assert decided[:6].all() and not decided[6:16].any() and decided[16:25].all() and not decided[25:].any()
+    assert abs(targets[0] - 0.3) < 0.015 and abs(targets[1] - 0.1) < 0.005 and np.isnan(targets[2]), targets
+    assert abs(typical - 0.1) < 0.005, typical
+    # too few decided pixels in the whole sample: no target at all
+    targets, typical, _ = object_targets(costs[:, 22:], groups[22:] - 2, 1, s)
+    assert np.isnan(targets).all() and np.isnan(typical), (targets, typical)
 
 
 def test_an_objects_decided_pixels_keep_their_fit_and_the_others_follow_their_target():
     costs = np.concatenate([_costs(4, [0.1]), _costs(4, [0.06, 0.66, 0.75])], axis=1)
     fitted = np.array([0.13, 0.2, 0.09, 0.3, 0.3, 0.3, 0.3, 0.3])
-    rough, decided = follow_targets(costs, fitted, np.full(8, 0.7), RoughnessSettings())
+    rough, decided = follow_targets(costs, fitted, np.full(8, 0.7), np.ones(8, bool), RoughnessSettings())
     assert decided[:4].all() and not decided[4:].any()
     np.testing.assert_allclose(rough[:4], fitted[:4], rtol=1e-6)  # their own fit, not the grid's 0.1
     np.testing.assert_allclose(rough[4:], 0.66, rtol=1e-6)  # the allowed value nearest 0.7 in log roughness
+
+
+def test_the_typical_roughness_is_followed_only_where_the_photos_allow_it():
+    # a material without a target of its own follows the object's typical 0.3: pixels allowing 0.3 take it; pixels
+    # whose photos allow a narrow or a broad lobe but not 0.3 (a rough pixel that saw a broad highlight) keep their
+    # fit; a pixel of a material with its own target 0.3 takes the allowed value nearest it even so
+    costs = np.concatenate([_costs(2, [0.06, 0.3, 0.75]), _costs(2, [0.06, 0.75]), _costs(1, [0.06, 0.75])], axis=1)
+    fitted = np.array([0.7, 0.7, 0.7, 0.66, 0.7])
+    own = np.array([False, False, False, False, True])
+    rough, decided = follow_targets(costs, fitted, np.full(5, 0.3), own, RoughnessSettings())
+    assert not decided.any()
+    np.testing.assert_allclose(rough, [0.3, 0.3, 0.7, 0.66, 0.75], rtol=1e-6)
 
 
 def test_material_groups_split_two_colours():

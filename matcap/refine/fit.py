@@ -818,8 +818,9 @@ def _object_choice(torch, full: _Problem, normal, base, rough, metal, lights, s:
         return _grid_costs_parallel(torch, full.part(pixels), normal[t], base[t], rough[t], metal[t], lights, r)
 
     sample_costs = costs(sample)
-    targets, decided = object_targets(sample_costs, groups[sample], n_groups, r)
-    target = targets[groups] if n_groups else np.zeros(0)
+    targets, typical, decided = object_targets(sample_costs, groups[sample], n_groups, r)
+    own = np.isfinite(targets)
+    target = np.where(own, targets, typical)[groups] if n_groups else np.zeros(0)
     has = np.isfinite(target)
     far = has & (np.abs(np.log(np.maximum(fitted, 1e-3)) - np.log(np.where(has, target, 1.0))) > np.log(r.moved))
     chosen = fitted.astype(np.float32).copy()
@@ -832,8 +833,8 @@ def _object_choice(torch, full: _Problem, normal, base, rough, metal, lights, s:
         c[:, scored] = sample_costs[:, at[pixels[scored]]]
         if not scored.all():
             c[:, ~scored] = costs(pixels[~scored])
-        chosen[pixels], _ = follow_targets(c, fitted[pixels], target[pixels], r)
-    return RoughnessChoice(chosen, decided, groups, targets, "object")
+        chosen[pixels], _ = follow_targets(c, fitted[pixels], target[pixels], own[groups[pixels]], r)
+    return RoughnessChoice(chosen, decided, groups, targets, "object", typical=typical)
 
 
 def _resolve(torch, full: _Problem, px, out: list, pixels: np.ndarray, rough: np.ndarray, weight: float, lights,
@@ -951,6 +952,38 @@ def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.n
     return e
 
 
+class _Adam:
+    """torch's Adam update (:func:`torch.optim.adam.adam`, the function :class:`torch.optim.Adam` steps with, at its
+    defaults: betas 0.9 / 0.999, eps 1e-8, no weight decay) over parameter groups ``[(tensors, lr), ...]``, with
+    the optimizer's interface (``zero_grad``, ``step``). The optimizer class itself is not used: its first
+    construction in a process imports ``torch._dynamo``, about 1.3 s on a 2-core machine, as long as a light fit."""
+
+    def __init__(self, torch, groups):
+        self.torch = torch
+        self.groups = [(list(tensors), float(lr)) for tensors, lr in groups]
+        self.state = {id(t): (torch.zeros_like(t), torch.zeros_like(t), torch.tensor(0.0))
+                      for tensors, _ in self.groups for t in tensors}
+
+    def zero_grad(self) -> None:
+        for tensors, _ in self.groups:
+            for t in tensors:
+                t.grad = None
+
+    def step(self) -> None:
+        from torch.optim.adam import adam
+
+        with self.torch.no_grad():
+            for tensors, lr in self.groups:
+                live = [t for t in tensors if t.grad is not None]
+                if not live:
+                    continue
+                m, v, steps = zip(*(self.state[id(t)] for t in live))
+                adam(live, [t.grad for t in live], list(m), list(v), [], list(steps), foreach=False,
+                     capturable=False, differentiable=False, fused=None, grad_scale=None, found_inf=None,
+                     has_complex=False, amsgrad=False, beta1=0.9, beta2=0.999, lr=lr, weight_decay=0.0, eps=1e-8,
+                     maximize=False)
+
+
 def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: str, iters: int,
                 directions_free: bool = True, maps_free: bool = True, relative_to=None, count: bool = True):
     """Adam on the lights (and, with ``maps_free``, the subsample's maps, anchored by the prior) under the full
@@ -970,13 +1003,13 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
         light_t.append(lights.log_intensity)
     if directions_free:
         light_t += [lights.vec] + ([lights.inv_distance] if lights.kind == "near" else [])
-    groups = [{"params": light_t, "lr": s.lights.lr}]
+    groups = [(light_t, s.lights.lr)]
     if maps_free:
-        groups.append({"params": px.tensors(), "lr": s.lights.lr_pixel})
-    for g in groups:
-        for t in g["params"]:
+        groups.append((px.tensors(), s.lights.lr_pixel))
+    for tensors, _ in groups:
+        for t in tensors:
             t.requires_grad_(True)
-    opt = torch.optim.Adam(groups)
+    opt = _Adam(torch, groups)
     data_mean = float("nan")
     if count:
         bar.add_total(iters)
@@ -1955,7 +1988,7 @@ def fit_light_only(image: np.ndarray, maps: MaterialMaps, settings: RefineSettin
     params = [lights.vec, lights.log_intensity] + ([lights.sh] if s.model.ambient != "none" else [])
     for t in params:
         t.requires_grad_(True)
-    opt = torch.optim.Adam(params, lr=s.lights.lr)
+    opt = _Adam(torch, [(params, s.lights.lr)])
     for _ in range(s.lights.iters):
         opt.zero_grad()
         per, _ = _loss(torch, sub, px_sub, lights, s, s.loss.cauchy, s.model.fit_brdf)

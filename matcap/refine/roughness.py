@@ -16,8 +16,10 @@ Two rules, by what the pixels share:
   material without decided pixels takes the sample's typical one;
 - an object (:func:`object_targets`, :func:`follow_targets`): its pixels face every way, so a pixel that saw a
   highlight already had it in the per-pixel solve, with the full model (cast shadows, the outline's mixing), and
-  keeps that fit; the others follow only a target of their own material (a material without decided pixels keeps
-  its fit), and the targets come from a sample of the pixels.
+  keeps that fit; the others follow their material's target, and the targets come from a sample of the pixels. A
+  material without decided pixels of its own follows the object's typical decided roughness, but only where a
+  pixel's photos allow that value: a pixel whose photos rule it out may be of another finish that the colour groups
+  did not separate, and keeps its fit.
 
 The same stage sets each material's metallic to 0 or 1 where its pixels' photos vote for it (:func:`metal_costs`,
 :func:`group_metallic`).
@@ -39,7 +41,8 @@ class RoughnessChoice:
     pixels scored for the targets (all N on a flat sample, a sample on an object, none where the roughness is
     held), those whose own photos allow only a narrow range; ``groups`` (N,) int, each pixel's material group
     (:func:`material_groups`); ``targets`` (G,) float, each group's typical decided roughness (NaN: the group had
-    too few decided pixels and took the sample's on a flat sample, kept its fit on an object); ``rule``:
+    too few decided pixels of its own); ``typical``, that of every decided pixel, the target of a group without one
+    (NaN: too few decided pixels in all); ``rule``:
     ``"plane"``, ``"object"`` or ``"held"`` (:attr:`matcap.refine.settings.RoughnessSettings.choose` off: every
     pixel kept its fitted roughness); ``metallic`` (G,) each group's metallic (:func:`group_metallic`: 0, 1 or
     NaN), or None."""
@@ -50,6 +53,7 @@ class RoughnessChoice:
     targets: np.ndarray
     rule: str = "plane"
     metallic: np.ndarray | None = None
+    typical: float = float("nan")
 
     def record(self) -> dict[str, Any]:
         """The choice as fit.json's ``roughness`` entry (``group_metallic``: each material group's metallic, or
@@ -58,6 +62,7 @@ class RoughnessChoice:
             "rule": self.rule,
             "decided_share": round(float(self.decided.mean()), 4) if len(self.decided) else 0.0,
             "group_targets": [None if not np.isfinite(t) else round(float(t), 4) for t in self.targets],
+            "typical_target": round(float(self.typical), 4) if np.isfinite(self.typical) else None,
             "group_metallic": None if self.metallic is None else [
                 None if np.isnan(v) else int(v) for v in self.metallic],
         }
@@ -228,25 +233,38 @@ def _medians(middle: np.ndarray, decided: np.ndarray, groups: np.ndarray, n_grou
     return targets
 
 
+def _typical(middle: np.ndarray, decided: np.ndarray, least: int) -> float:
+    """The median roughness (exp of ``middle``, log roughness (N,)) of every ``decided`` pixel; NaN where there are
+    fewer than ``least``."""
+    return float(np.exp(np.median(middle[decided]))) if decided.sum() >= max(least, 1) else float("nan")
+
+
 def object_targets(costs: np.ndarray, groups: np.ndarray, n_groups: int, s: RoughnessSettings
-                   ) -> tuple[np.ndarray, np.ndarray]:
+                   ) -> tuple[np.ndarray, float, np.ndarray]:
     """An object's material targets from the grid costs (G, M) of a sample of its pixels and their groups (M,)
     int: (targets (n_groups,), each group's median decided roughness, NaN where the sample holds fewer than
-    ``s.min_decided`` decided pixels of it; decided (M,) bool)."""
+    ``s.min_decided`` decided pixels of it; the typical roughness, the median over every decided pixel, NaN where
+    there are fewer than ``s.min_decided`` of those; decided (M,) bool)."""
     _, _, _, decided = _span(costs, s)
     middle = _vertex(costs, np.log(np.asarray(s.grid, np.float64)))
-    return _medians(middle, decided, groups, n_groups, s.min_decided), decided
+    return (_medians(middle, decided, groups, n_groups, s.min_decided), _typical(middle, decided, s.min_decided),
+            decided)
 
 
-def follow_targets(costs: np.ndarray, fitted: np.ndarray, target: np.ndarray, s: RoughnessSettings
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """An object's pixels (grid costs (G, M), fitted roughness (M,), their material's target (M,)): a decided
-    pixel keeps its fitted roughness, the others take the allowed value nearest (in log roughness) the target.
+def follow_targets(costs: np.ndarray, fitted: np.ndarray, target: np.ndarray, own: np.ndarray,
+                   s: RoughnessSettings) -> tuple[np.ndarray, np.ndarray]:
+    """An object's pixels (grid costs (G, M), fitted roughness (M,), their target (M,), whether that is their own
+    material's (M,) bool, else the object's typical roughness): a decided pixel keeps its fitted roughness; the
+    others take the allowed value nearest (in log roughness) the target, except that a pixel following the
+    typical roughness keeps its fit where the grid value nearest the target is not allowed.
     Returns (roughness (M,) float32, decided (M,) bool)."""
     grid = np.asarray(s.grid, np.float64)
     allowed, _, _, decided = _span(costs, s)
-    nearest = np.where(allowed, np.abs(np.log(grid)[:, None] - np.log(target)[None]), np.inf).argmin(axis=0)
-    return np.where(decided, fitted, grid[nearest]).astype(np.float32), decided
+    dist = np.abs(np.log(grid)[:, None] - np.log(target)[None])
+    nearest = np.where(allowed, dist, np.inf).argmin(axis=0)
+    there = np.take_along_axis(allowed, dist.argmin(axis=0)[None], axis=0)[0]
+    keep = decided | ~(own | there)
+    return np.where(keep, fitted, grid[nearest]).astype(np.float32), decided
 
 
 def held_roughness(base: np.ndarray, fitted: np.ndarray, s: RoughnessSettings, seed: int) -> RoughnessChoice:
@@ -279,7 +297,8 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
         return RoughnessChoice(np.asarray(fitted, np.float32), decided, groups, np.full(n_groups, np.nan))
     middle = np.where(decided, _vertex(costs, np.log(grid)), (lo + hi) / 2.0)
     targets = _medians(middle, decided, groups, n_groups, s.min_decided)
-    target = np.log(np.where(np.isfinite(targets), targets, np.exp(np.median(middle[decided]))))[groups]
+    typical = _typical(middle, decided, 1)
+    target = np.log(np.where(np.isfinite(targets), targets, typical))[groups]
     nearest = np.where(allowed, np.abs(lg - target[None]), np.inf).argmin(axis=0)
     rough = np.where(decided, np.exp(middle), grid[nearest]).astype(np.float32)
-    return RoughnessChoice(rough, decided, groups, targets)
+    return RoughnessChoice(rough, decided, groups, targets, typical=typical)

@@ -205,8 +205,8 @@ class RoughnessSettings:
     groups: int = 8
     """Material groups (k-means of the fitted base colour) whose decided pixels set the others' roughness."""
     min_decided: int = 20
-    """A group with fewer decided pixels has no target of its own: on a flat sample it takes the typical roughness
-    of every decided pixel, on an object it keeps its fit."""
+    """A group with fewer decided pixels has no target of its own and takes the typical roughness of every decided
+    pixel (on an object, only its pixels whose photos allow that value; the others keep their fit)."""
     sample: int = 20000
     """An object's targets come from the scores of this many of its pixels (a random sample); then only the
     pixels farther than ``moved`` from their group's target are scored."""
