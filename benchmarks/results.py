@@ -1,6 +1,6 @@
 """Re-measure every published number and rewrite the results table.
 
-    python benchmarks/results.py                       # everything: docs/results.md and the README's summary
+    python benchmarks/results.py                       # everything: docs/results.md
     python benchmarks/results.py --quick --out FILE    # a small subset in a few minutes, written to FILE
     python benchmarks/results.py --only uw_normals,bunny_speed   # some rows (the others keep their last numbers
                                                                  # only if they are cached in --work)
@@ -13,9 +13,9 @@ default ``$TMPDIR/matcap-results``): a re-run skips every command that already f
 line, so an interrupted run resumes where it stopped (``--fresh`` re-measures everything).
 
 The rows are written between ``<!-- results:start -->`` and ``<!-- results:end -->`` of ``--out`` (default
-docs/results.md; a new file is created with the markers), and the summary rows (at most 8) between
-``<!-- results-summary:start -->`` and ``<!-- results-summary:end -->`` of ``--readme`` (default README.md when
-writing docs/results.md; with ``--out`` only if ``--readme`` is given).
+docs/results.md; a new file is created with the markers), and, where ``--readme FILE`` is given, a table of the
+summary rows (at most 8) between ``<!-- results-summary:start -->`` and ``<!-- results-summary:end -->`` of FILE.
+The project's README.md has its own summary, each number with the command that gives it: it is not rewritten.
 
 Rows that need ``../shared/data`` (the UW and ToyPS captures, the held-out assets of the synthetic test split,
 textures and environment maps of the rendered domes) say so, and are skipped with that reason when it is missing.
@@ -216,7 +216,7 @@ class Row:
     measure: Callable  # (ctx) -> (value, comparison, [Run, ...])
     shared: bool = False  # needs ../shared/data
     quick: bool = False  # part of --quick
-    summary: str = ""  # the README's summary row label ("" = not in the summary)
+    summary: str = ""  # the row's label in the summary table of --readme ("" = not in it)
     quick_what: str = ""  # what the row measures under --quick, where that differs
 
 
@@ -681,11 +681,10 @@ NEW_DOC = """# Results
 Every number on this page is measured by `python benchmarks/results.py` on the checkout it lives in. Each row
 runs the commands in its last column (the project's own: `matcap eval`, `matcap capture`, `matcap synth`,
 `python -m networks.validate` and the scripts in `benchmarks/`), reads the numbers from their output, and records
-the date, the machine and its load. Nothing between the markers is typed by hand; the README's results summary
-comes from the same run.
+the date, the machine and its load. Nothing between the markers is typed by hand.
 
 ```
-python benchmarks/results.py                        # every row (hours on 2 cores): this page and the README summary
+python benchmarks/results.py                        # every row (hours on 2 cores): this page
 python benchmarks/results.py --only bunny_speed     # some rows; the others come from the cache or stay as they are
 python benchmarks/results.py --quick --out FILE     # a small subset in a few minutes, written to FILE (CI runs it)
 python benchmarks/results.py --list                 # the rows: which are quick, which need ../shared/data
@@ -711,7 +710,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="a small subset of every quick row (a few minutes)")
     ap.add_argument("--out", type=Path, help="the Markdown file to write (default docs/results.md)")
     ap.add_argument("--readme", type=Path,
-                    help="the file whose summary markers to rewrite (default README.md when --out is not given)")
+                    help="a file whose summary markers to rewrite with a table of the summary rows")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "matcap-results",
                     help="work folder: outputs and the cache of finished commands (default %(default)s)")
     ap.add_argument("--data-test", type=Path, help="an existing synthetic test split (default: rendered in --work)")
@@ -732,7 +731,7 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             ap.error(f"unknown rows: {', '.join(sorted(unknown))} (see --list)")
     out = args.out or REPO / "docs" / "results.md"
-    readme = args.readme if args.readme else (REPO / "README.md" if args.out is None else None)
+    readme = args.readme
     work = args.work.resolve() / ("quick" if args.quick else "full")
     work.mkdir(parents=True, exist_ok=True)
     has_shared = SHARED.is_dir()
