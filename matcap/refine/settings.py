@@ -173,7 +173,7 @@ class PixelStageSettings:
     metallic from its own fit) and keeps whichever solution has the lower loss (data and priors). 0: none."""
     restart_iters: int = 20
     """Iterations of that second solve."""
-    restart_rounds: int = 2
+    restart_rounds: int = 3
     """Rounds of those restarts (a pixel fixed in one round gives its neighbours a better median in the next)."""
     found_lamps_detail: float = 0.125
     """A flat sample whose lamps were found from their falloff: its fitted normals keep only the tilts finer than
