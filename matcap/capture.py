@@ -965,12 +965,12 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     refined.meta = dict(maps.meta)
     r = result.report
     refined.meta["refine"] = {
-        "lights": (lights.record() if lights is not None else
-                   r["lights"] if "lights" in r else {"source": "estimated"}),
+        # the fit's record of the lights it held (known, from a ball, or a flat sample's found lamps): what the
+        # file gave and what the fit did with it (its ambient given, fitted or none)
+        "lights": r.get("lights", {"source": "estimated"}),
         "psnr_db_mean": r["psnr_db_mean"], "normal_change_deg_mean": r["normal_change_deg_mean"],
         "light_model": (r["lights"]["kind"] if "lights" in r else
-                        "point" if lin.get("check") == "near lamps" else s.model.light) if lights is None
-        else lights.record()["kind"],  # what was fitted
+                        "point" if lin.get("check") == "near lamps" else s.model.light),  # what was fitted
         "seconds": r["timings"]["total_s"],
         "weak_light_variation_fraction": r["light_variation"]["weak_fraction"],
         "kept_network_maps": r["kept_network_maps"],
