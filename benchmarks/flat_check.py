@@ -32,7 +32,9 @@ forces the scalar one).
 
 Methods: ``default`` (``matcap capture photos --out R --quiet``), ``lights`` (the same with ``--lights
 lights.json``), ``flat`` and ``flat+lights`` (with ``--flat``; "not available" while ``matcap capture --help`` does
-not list it). The row ``flat plane`` is the baseline that takes every normal to be the camera axis.
+not list it), ``flat+directions`` (``--flat --lights directions.txt``, the distant lights' directions alone, so
+that the fit finds each photo's intensity; far lights only). The row ``flat plane`` is the baseline that takes
+every normal to be the camera axis.
 
 Scores over the whole frame: mean angular normal error (degrees); base colour RMSE in linear RGB after one
 least-squares scale per channel (the lights' absolute intensity is unknown to a capture without ``--lights``, so
@@ -66,7 +68,7 @@ sys.path.insert(0, str(REPO))
 TEXTURES = REPO.parent / "shared" / "data" / "textures"
 
 CONDITIONS = ("near", "far")
-METHODS = ("default", "lights", "flat", "flat+lights")
+METHODS = ("default", "lights", "flat", "flat+lights", "flat+directions")
 #: Constants for maps a texture set lacks.
 DEFAULT_ROUGHNESS = 0.6
 DEFAULT_METALLIC = 0.0
@@ -374,7 +376,18 @@ def capture_args(method: str, folder: Path) -> list[str]:
         args.append("--flat")
     if method.endswith("lights"):
         args += ["--lights", str(folder / "lights.json")]
+    if method.endswith("directions"):
+        args += ["--lights", str(write_directions(folder))]
     return args
+
+
+def write_directions(folder: Path) -> Path:
+    """``folder``/directions.txt: the true distant lights' directions alone, one ``x y z`` row per photo in the
+    photos' order (a plain light table: each photo's intensity is left to the fit)."""
+    doc = json.loads((folder / "lights.json").read_text())
+    path = folder / "directions.txt"
+    path.write_text("".join(" ".join(f"{v:.9f}" for v in e["direction"]) + "\n" for e in doc["images"]))
+    return path
 
 
 def run_capture(method: str, folder: Path) -> tuple[Path, float | None, str | None]:
@@ -561,6 +574,12 @@ def main(argv=None) -> int:
                          "scores": flat_baseline(truth), "capture_s": None, "render_s": secs})
             for method in args.methods:
                 row = {"set": set_name, "condition": cond, "method": method, "capture_s": None}
+                if method.endswith("directions") and cond != "far":
+                    row["status"] = "not applicable"
+                    rows.append(row)
+                    print(f"{set_name} {cond} {method}: not applicable (its lights are lamps, not directions)",
+                          flush=True)
+                    continue
                 if method.startswith("flat") and not has_flat:
                     row["status"] = "not available"
                     rows.append(row)

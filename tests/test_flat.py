@@ -119,6 +119,31 @@ def test_flat_fit_recovers_the_normals_of_a_principled_render():
     assert _angle(start.normal, n).mean() > 2.5  # the start was worse than the goal
 
 
+def test_flat_fit_with_light_directions_alone_keeps_the_sample_level():
+    """Distant lights whose directions alone are given, each photo a different strength (a lamp moved by hand): each
+    photo's intensity is fitted, and on a plane it trades with a tilt of the whole sample toward that photo's light;
+    the light fit holds the mean normal to the camera axis (``lights.flat_tilt``)."""
+    from matcap.lightfiles import KnownLights
+    from matcap.refine import RefineSettings, refine
+    from renderers.relight import render
+    from scenes.lights import DirectionalLight
+
+    n, albedo = _swatch()
+    lamps = _lamps(16, (1.0, 3.0))
+    dirs = lamps / np.linalg.norm(lamps, axis=1, keepdims=True)
+    strength = 2.0 * np.exp(np.random.default_rng(5).uniform(-0.5, 0.5, len(dirs)))
+    photos = [render(_maps(n, albedo), [DirectionalLight(tuple(d), (e, e, e))], spp=16, seed=i,
+                     texture_filter="nearest") for i, (d, e) in enumerate(zip(dirs, strength))]
+    known = KnownLights(dirs, None, "file", "directions", "order")
+    start = _maps(np.dstack([np.zeros_like(n[..., :2]), np.ones_like(n[..., :1])]), np.full_like(albedo, 0.5), 0.5)
+    err = {}
+    for weight in (RefineSettings().lights.flat_tilt, 0.0):
+        result = refine(photos, start, RefineSettings().replace({"lights.flat_tilt": weight}), lights=known, flat=True)
+        err[weight] = _angle(result.maps.normal, n).mean()
+    assert err[RefineSettings().lights.flat_tilt] < 0.8, err  # measured 0.61
+    assert err[0.0] > 3.0, err  # measured 8.7: the sample tilted as a whole by 8.3 degrees
+
+
 def test_found_lamps_keep_only_the_fine_tilts():
     """A found lamp's error tilts the fit smoothly across the sample: the tilts larger than a share of the width go,
     the texture's fine ones stay (most of them: this random texture has some energy at the larger scales too)."""

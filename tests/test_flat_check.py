@@ -118,6 +118,9 @@ def test_written_sample_reads_back(tmp_path):
         else:
             assert known.positions is None
             assert np.allclose(known.directions, [light.direction for light in lights])
+            alone = read_light_file(F.write_directions(folder), [str(folder / "photos" / f) for f in files])
+            assert alone.intensities is None and alone.matched == "order"
+            assert np.allclose(alone.directions, known.directions, atol=1e-8)
         assert np.allclose(known.intensities[:, 0], [(lamp.intensity if cond == "near" else lamp.irradiance)[0]
                                                      for lamp in lights])
         assert np.array_equal(read_exr(folder / "gt" / "normal.exr"), maps.normal)

@@ -530,14 +530,14 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
 
     Stages: (1) lights: the given directions (and point-light positions) are held; the per-photo intensities (or,
     where the file gives relative intensities, one overall scale, their colours held) and one ambient shared by
-    every photo are fitted, first by least squares, then jointly with a subsample's maps under the Principled
-    model (``lights.iters`` Adam steps). Distant lights whose intensities the file gives are taken as they are,
-    at the least-squares scale, with the file's ambient (a ``lights.json``'s ``sh``; else none) at that scale;
-    the start normals come from
-    semi-calibrated Lambertian least squares (:func:`known_irradiance`); (2) the per-pixel solve
-    (:func:`_solve_maps`) from calibrated photometric-stereo normals, then the roughness stage
-    (:func:`_roughness_stage`); (3) outputs. With the lights known there is
-    no bas-relief family to choose from, so nothing is gated: the maps are always the fitted ones. ``flat``: what
+    every photo are fitted, first by least squares, then jointly with a subsample's maps under the Principled model
+    (``lights.iters`` Adam steps; on a flat sample whose photos' intensities are all fitted, with the subsample's
+    mean normal held to the camera axis, ``lights.flat_tilt``). Distant lights whose intensities the file gives are
+    taken as they are, at the least-squares scale, with the file's ambient (a ``lights.json``'s ``sh``; else none)
+    at that scale; the start normals come from semi-calibrated Lambertian least squares (:func:`known_irradiance`);
+    (2) the per-pixel solve (:func:`_solve_maps`) from calibrated photometric-stereo normals, then the roughness
+    stage (:func:`_roughness_stage`); (3) outputs. With the lights known there is no bas-relief family to choose
+    from, so nothing is gated: the maps are always the fitted ones. ``flat``: what
     :func:`matcap.refine.flat.flat_lights` found (empty where the lights were given), recorded in fit.json as
     ``flat``.
     """
@@ -613,7 +613,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
                else "given" if known.ambient is not None else "none")  # what fit.json says of it
     if light_iters:
         lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", light_iters, directions_free=False,
-                                relative_to=given_log)
+                                relative_to=given_log,
+                                mean_tilt=s.lights.flat_tilt if flat is not None and given is None else 0.0)
     timings["lights_s"] = time.perf_counter() - t0
 
     # ---- 2. per pixel
@@ -985,12 +986,15 @@ class _Adam:
 
 
 def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: str, iters: int,
-                directions_free: bool = True, maps_free: bool = True, relative_to=None, count: bool = True):
+                directions_free: bool = True, maps_free: bool = True, relative_to=None, count: bool = True,
+                mean_tilt: float = 0.0):
     """Adam on the lights (and, with ``maps_free``, the subsample's maps, anchored by the prior) under the full
     loss :func:`_loss` of the pixels ``prob``. ``directions_free`` False holds the directions (and a near lamp's
     distance); ``relative_to`` (K, 3) log intensities: only one overall log scale moves (the colours are
-    held); ``count``: add the steps to the progress total (False where the caller planned them). Returns (lights,
-    a copy without gradients; the last step's mean data term)."""
+    held); ``count``: add the steps to the progress total (False where the caller planned them); ``mean_tilt``:
+    weight of the squared mean of the maps' normal gradients (a flat sample's mean normal is the camera axis,
+    :attr:`matcap.refine.settings.LightStageSettings.flat_tilt`). Returns (lights, a copy without gradients; the
+    last step's mean data term)."""
     from matcap.refine.model import PixelParams
 
     px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
@@ -1021,6 +1025,8 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
                 lights.log_intensity = relative_to + offset
             per, data = _loss(torch, prob, px, lights, s, s.loss.cauchy, s.model.fit_brdf)
             loss = per.mean()
+            if mean_tilt > 0 and maps_free:
+                loss = loss + mean_tilt * px.grad.mean(0).square().sum()
             loss.backward()
             opt.step()
             if near:  # a negative inverse distance, or a direction behind the framing plane, would put the lamp
