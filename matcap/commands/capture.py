@@ -130,7 +130,8 @@ def fit_notes(result, settings) -> list[str]:
             tips = [tip for model, tip in CANDIDATE_TIPS.items() if model not in listed]
         hint = f" ({'; '.join(tips)})" if tips else ""
         lines.append(f"note: the fit kept the networks' maps: {lin.get('reason')}. Lights you know make the fit "
-                     f"well-posed: give them with --lights FILE, or put a mirror ball in the photos (--ball auto)"
+                     f"well-posed: give them with --lights FILE (a table of their directions will do), or put a mirror "
+                     f"ball in the photos (--ball auto)"
                      f"{hint}")
     return lines
 
