@@ -531,7 +531,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     Stages: (1) lights: the given directions (and point-light positions) are held; the per-photo intensities (or,
     where the file gives relative intensities, one overall scale, their colours held) and one ambient shared by
     every photo are fitted, first by least squares, then jointly with a subsample's maps under the Principled model
-    (``lights.iters`` Adam steps; on a flat sample whose photos' intensities are all fitted, with the subsample's
+    (``lights.iters`` Adam steps; on a flat sample whose given lights come without intensities, with the subsample's
     mean normal held to the camera axis, ``lights.flat_tilt``). Distant lights whose intensities the file gives are
     taken as they are, at the least-squares scale, with the file's ambient (a ``lights.json``'s ``sh``; else none)
     at that scale; the start normals come from semi-calibrated Lambertian least squares (:func:`known_irradiance`);
@@ -607,14 +607,16 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
             amb = np.asarray(known.ambient, np.float64)
             amb = amb if s.model.ambient == "per-image" else amb.mean(0, keepdims=True)
             lights.sh = torch.as_tensor(amb, dtype=torch.float32, device=device) * offset.exp()
+    # a flat sample's given lights without intensities: the sample's mean normal held (found lamps have their wide
+    # tilts taken out after the per-pixel solve instead, pixels.found_lamps_detail)
+    tilt_held = flat is not None and given is None and known.source != "estimated" and s.lights.flat_tilt > 0
     # distant lights whose intensities are given are taken as they are; the others are fitted
     light_iters = 0 if inv_distance is None and given is not None else s.lights.iters
     ambient = ("none" if s.model.ambient == "none" else "fitted" if light_iters > 0
                else "given" if known.ambient is not None else "none")  # what fit.json says of it
     if light_iters:
         lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", light_iters, directions_free=False,
-                                relative_to=given_log,
-                                mean_tilt=s.lights.flat_tilt if flat is not None and given is None else 0.0)
+                                relative_to=given_log, mean_tilt=s.lights.flat_tilt if tilt_held else 0.0)
     timings["lights_s"] = time.perf_counter() - t0
 
     # ---- 2. per pixel
@@ -645,7 +647,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     timings["outputs_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     report = {
-        "lights": {**known.record(), "directions": "held", "ambient": ambient,
+        "lights": {**known.record(), "directions": "held", "ambient": ambient, "mean_normal_held": tilt_held,
                    "solved_fraction": photo_report["solved_fraction"]},
         **({"flat": flat} if flat is not None else {}),
         "psnr_db": [round(p, 3) for p in out.psnr],

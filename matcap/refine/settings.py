@@ -87,9 +87,10 @@ class LightStageSettings:
     lr_pixel: float = 0.05
     """Adam step size of the subsample's map parameters during the light fit."""
     flat_tilt: float = 1000.0
-    """A flat sample whose lights come without intensities: weight of the squared mean normal gradient (x and y of
-    ``n / n_z``) of the light fit's pixels in its loss. The sample's mean normal is the camera axis; without it a
-    photo's fitted intensity trades with a tilt of the whole sample toward or away from that photo's light."""
+    """A flat sample whose given lights come without intensities: weight of the squared mean normal gradient (x and
+    y of ``n / n_z``) of the light fit's pixels in its loss. The sample's mean normal is the camera axis; without it
+    a photo's fitted intensity trades with a tilt of the whole sample toward or away from that photo's light. (Lamps
+    found from their falloff have every tilt wider than ``pixels.found_lamps_detail`` taken out instead.)"""
 
 
 @dataclass
