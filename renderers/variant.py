@@ -5,6 +5,7 @@
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -62,6 +63,21 @@ def choose_variant(prefer: str | None = None, quiet: bool = False) -> str:
         )
     mi.set_variant(_chosen)
     return _chosen
+
+
+@contextlib.contextmanager
+def one_thread():
+    """Dr.Jit (and so Mitsuba) on one thread inside the block, its thread count restored after. With several, an
+    llvm variant's film adds up a pixel's samples in the order the threads happen to finish, so the same render
+    differs in its last bits from run to run on a busy machine; on one thread it is the same every time."""
+    import drjit as dr
+
+    was = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(was)
 
 
 def interrupted_by(exc: BaseException) -> bool:

@@ -133,8 +133,10 @@ def highlighted(normal: np.ndarray, lights, within_deg: float = 6.0) -> np.ndarr
 
 
 def render_capture(maps: MaterialMaps, lights, ambient: float = 0.05, spp: int = 32, seed: int = 0):
-    """K (H, W, 3) float32 linear photos of ``maps``: each light plus a uniform environment of radiance ``ambient``."""
+    """K (H, W, 3) float32 linear photos of ``maps``: each light plus a uniform environment of radiance ``ambient``.
+    Rendered on one thread, so that the same call gives the same photos bit for bit however busy the machine."""
     from renderers.relight import render
+    from renderers.variant import one_thread
     from scenes.lights import EnvironmentLight
 
     env = {"uniform": np.full((16, 32, 3), ambient, np.float32)}
@@ -142,10 +144,11 @@ def render_capture(maps: MaterialMaps, lights, ambient: float = 0.05, spp: int =
     # would otherwise blend rim pixels with the flat background), then black out the background
     full = extend_maps(maps)
     photos = []
-    for i, light in enumerate(lights):
-        extra = [EnvironmentLight(source="uniform")] if ambient > 0 else []
-        img = render(full, [light] + extra, env if extra else None, spp=spp, seed=seed + i)
-        photos.append(np.where(maps.mask[..., None], img, 0.0).astype(np.float32))
+    with one_thread():
+        for i, light in enumerate(lights):
+            extra = [EnvironmentLight(source="uniform")] if ambient > 0 else []
+            img = render(full, [light] + extra, env if extra else None, spp=spp, seed=seed + i)
+            photos.append(np.where(maps.mask[..., None], img, 0.0).astype(np.float32))
     return photos
 
 
