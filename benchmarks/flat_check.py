@@ -574,16 +574,13 @@ def main(argv=None) -> int:
                          "scores": flat_baseline(truth), "capture_s": None, "render_s": secs})
             for method in args.methods:
                 row = {"set": set_name, "condition": cond, "method": method, "capture_s": None}
-                if method.endswith("directions") and cond != "far":
-                    row["status"] = "not applicable"
+                skipped = ("not applicable" if method.endswith("directions") and cond != "far" else
+                           "not available" if method.startswith("flat") and not has_flat else None)
+                if skipped:
+                    row["status"] = skipped
                     rows.append(row)
-                    print(f"{set_name} {cond} {method}: not applicable (its lights are lamps, not directions)",
-                          flush=True)
-                    continue
-                if method.startswith("flat") and not has_flat:
-                    row["status"] = "not available"
-                    rows.append(row)
-                    print(f"{set_name} {cond} {method}: not available", flush=True)
+                    why = " (its lights are lamps, not directions)" if skipped == "not applicable" else ""
+                    print(f"{set_name} {cond} {method}: {skipped}{why}", flush=True)
                     continue
                 reused = (folder / "results" / method / "capture.json").is_file()
                 out, csecs, error = run_capture(method, folder)
