@@ -216,6 +216,27 @@ def test_the_pixel_solve_does_not_depend_on_the_chunks():
         assert all(torch.equal(a, b) for a, b in zip(outs[0].tensors(), other.tensors()))
 
 
+def test_the_light_fit_does_not_depend_on_the_thread_count():
+    """The light fit sums each step's loss and gradient over two halves of its pixels, side by side where torch
+    has two threads: the lights and the last data term are the same bits on one thread and on two."""
+    _, _, prob, lights, _ = _glossy_sphere_problem(32)
+    start = LightParams("directional", lights.vec.clone(), lights.log_intensity + 0.3, lights.sh.clone())
+    s = RefineSettings(seed=0)
+    was = torch.get_num_threads()
+    outs = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            trial = LightParams("directional", *(t.clone() for t in start.tensors()))
+            outs.append(F._fit_lights(torch, prob, trial, s, F._Bar(None, s), "lights", 30))
+    finally:
+        torch.set_num_threads(was)
+    (one, data_one), (two, data_two) = outs
+    assert all(torch.equal(a, b) for a, b in zip(one.tensors(), two.tensors()))
+    assert data_one == data_two
+    assert float((one.log_intensity - start.log_intensity).abs().max()) > 1e-3  # the fit moved the lights
+
+
 def test_levenberg_marquardt_stops_where_the_model_promises_nothing():
     """At its minimum (in float32, where a step's gain is lost in rounding and the step may be rejected) a problem
     is done within a few iterations: the Gauss-Newton model predicts no gain, so a rejected step there is not

@@ -995,8 +995,12 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
     distance); ``relative_to`` (K, 3) log intensities: only one overall log scale moves (the colours are
     held); ``count``: add the steps to the progress total (False where the caller planned them); ``mean_tilt``:
     weight of the squared mean of the maps' normal gradients (a flat sample's mean normal is the camera axis,
-    :attr:`matcap.refine.settings.LightStageSettings.flat_tilt`). Returns (lights, a copy without gradients; the
-    last step's mean data term)."""
+    :attr:`matcap.refine.settings.LightStageSettings.flat_tilt`). Each step's loss and gradient are summed over
+    the two halves of the pixels, side by side where torch has two threads or more; the
+    result does not depend on the thread count. Returns (lights, a copy without gradients; the last step's mean
+    data term)."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from matcap.refine.model import PixelParams
 
     px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
@@ -1012,31 +1016,54 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
     groups = [(light_t, s.lights.lr)]
     if maps_free:
         groups.append((px.tensors(), s.lights.lr_pixel))
-    for tensors, _ in groups:
-        for t in tensors:
-            t.requires_grad_(True)
+    leaves = [t for tensors, _ in groups for t in tensors]
+    for t in leaves:
+        t.requires_grad_(True)
     opt = _Adam(torch, groups)
     data_mean = float("nan")
     if count:
         bar.add_total(iters)
     near = directions_free and lights.kind == "near"
-    with _one_thread(torch):  # a few thousand pixels: too small an operation to share
-        for _ in range(iters):
-            opt.zero_grad()
-            if offset is not None:
-                lights.log_intensity = relative_to + offset
-            per, data = _loss(torch, prob, px, lights, s, s.loss.cauchy, s.model.fit_brdf)
-            loss = per.mean()
-            if mean_tilt > 0 and maps_free:
-                loss = loss + mean_tilt * px.grad.mean(0).square().sum()
-            loss.backward()
-            opt.step()
-            if near:  # a negative inverse distance, or a direction behind the framing plane, would put the lamp
-                with torch.no_grad():  # where it lights nothing the camera sees
-                    lights.inv_distance.clamp_(min=0.0)
-                    lights.vec[:, 2].clamp_(min=1e-3)
-            data_mean = float(data.detach().mean())
-            bar.step(label, float(loss.detach()))
+    n = len(prob)
+    cut = (n + 1) // 2
+    halves = [(sl, prob.part(sl)) for sl in (slice(0, cut), slice(cut, n)) if sl.stop > sl.start]
+
+    def half(sl, part):
+        """(loss sum / n, data sum, gradients of the loss by ``leaves``) of the pixels ``sl``."""
+        hl = lights if offset is None else replace(lights, log_intensity=relative_to + offset)
+        hp = PixelParams(*(t[sl] for t in px.tensors()))
+        per, data = _loss(torch, part, hp, hl, s, s.loss.cauchy, s.model.fit_brdf)
+        loss = per.sum() / n
+        grads = torch.autograd.grad(loss, leaves, allow_unused=True)
+        return float(loss.detach()), float(data.detach().sum()), grads
+
+    with _one_thread(torch) as threads:  # a few thousand pixels: too small an operation to share within
+        pool = ThreadPoolExecutor(1, initializer=torch.set_num_threads, initargs=(1,)) if _workers(threads) > 1 \
+            else None
+        try:
+            for _ in range(iters):
+                later = pool.submit(half, *halves[1]) if pool is not None and len(halves) > 1 else None
+                parts = [half(*halves[0])]
+                parts += [later.result()] if later is not None else [half(*h) for h in halves[1:]]
+                loss = sum(p[0] for p in parts)
+                for i, t in enumerate(leaves):
+                    gs = [p[2][i] for p in parts if p[2][i] is not None]
+                    t.grad = sum(gs[1:], gs[0]) if gs else None
+                if mean_tilt > 0 and maps_free:
+                    tilt = mean_tilt * px.grad.mean(0).square().sum()
+                    (g,) = torch.autograd.grad(tilt, [px.grad])
+                    px.grad.grad = g if px.grad.grad is None else px.grad.grad + g
+                    loss += float(tilt)
+                opt.step()
+                if near:  # a negative inverse distance, or a direction behind the framing plane, would put the
+                    with torch.no_grad():  # lamp where it lights nothing the camera sees
+                        lights.inv_distance.clamp_(min=0.0)
+                        lights.vec[:, 2].clamp_(min=1e-3)
+                data_mean = sum(p[1] for p in parts) / n
+                bar.step(label, loss)
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True)
     if offset is not None:
         lights.log_intensity = (relative_to + offset).detach()
     for t in lights.tensors():

@@ -301,32 +301,35 @@ def _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, tange
     dspec_r = dd_r * gi4 * g_o + d * (dgi_r / (4.0 * ci)[None]) * g_o + d * gi4 * dgo_r
     ddiff_r = torch.where(valid, ddiff_r * bump, zero)
     dspec_r = torch.where(valid, dspec_r * bump, zero)
-    d_rough = (ddiff_r[..., None] * base[None] + dspec_r[..., None] * fres) * irr
+    base_irr, fres_irr = base[None] * irr, fres * irr  # (K, N, 3): what the diffuse and specular terms scale
+    d_rough = torch.addcmul(ddiff_r[..., None] * base_irr, dspec_r[..., None], fres_irr)
 
-    # d/d normal along each tangent (T, K, N)
+    # d/d normal along each tangent (T, K, N): the model depends on the normal through ci = n_z, co = l.n, ch = h.n
+    # and the ambient's SH basis; the diffuse and specular terms' partial derivatives by ci, co and ch are (K, N)
+    # coefficients of the tangents' (T, K, N) changes of them
     t = tangents
     dci = t[..., 2][:, None]  # (T, 1, N)
     dco = _dots_t(l, t)
-    dch = torch.where(ch_raw > 1e-6, _dots_t(h, t), zero)
-    dfi = _schlick_d(ci)[None] * dci
-    dfo = _schlick_d(co) * dco
-    dshape = (dfi * (-0.5 * (1.0 - 0.5 * fo) + rr * (1.0 + fo * (rr - 1.0)))
-              + dfo * (-0.5 * (1.0 - 0.5 * fi)[None] + rr * (1.0 + fi[None] * (rr - 1.0))))
-    ddiff = (dshape * co + diff_shape * dco) * dielectric
-    dtan2_i = -2.0 / (ci * ci * ci)[None] * dci
-    dgi = -0.25 * g_i[None] * g_i[None] * a2[None] * dtan2_i / sq_i[None]
-    dgi4 = dgi / (4.0 * ci)[None] - gi4 * dci / ci[None]
-    dd = -4.0 * d * ch * (a2[None] - 1.0) * dch / denom
-    dtan2_o = -2.0 / (co * co * co) * dco
-    dgo = -0.25 * g_o * g_o * a2[None] * dtan2_o / sq_o
-    dspec = dd * gi4 * g_o + d * dgi4 * g_o + d * gi4 * dgo
+    dch = _dots_t(h, t)
+    s_fi = _schlick_d(ci)[None]  # (1, N): d fi / d ci
+    s_fo = _schlick_d(co)  # d fo / d co
+    shape_fi = -0.5 * (1.0 - 0.5 * fo) + rr * (1.0 + fo * (rr - 1.0))  # d diff_shape / d fi
+    shape_fo = -0.5 * (1.0 - 0.5 * fi)[None] + rr * (1.0 + fi[None] * (rr - 1.0))  # d diff_shape / d fo
+    q_i = (-2.0 / (ci * ci * ci))[None]  # d tan2_i / d ci
+    gi4_ci = (-0.25 * g_i * g_i * a2 / sq_i / (4.0 * ci))[None] * q_i - gi4 / ci[None]  # d gi4 / d ci
+    go_co = -0.25 * g_o * g_o * a2[None] * (-2.0 / (co * co * co)) / sq_o  # d g_o / d co
+    d_ch = -4.0 * d * ch * (a2[None] - 1.0) / denom  # d D / d ch
     inside = ((0.125 * tan2_i > 0.0) & (0.125 * tan2_i < 1.0))[None]
-    dbump_a2 = torch.where(inside, 0.125 * dtan2_i, zero)
-    dbump = -0.25 * bump * bump * tan2_l * dbump_a2 / sq_b
-    ddiff = torch.where(valid, ddiff * bump + diff * dbump, zero)
-    dspec = torch.where(valid, dspec * bump + spec * dbump, zero)
+    bump_ci = -0.25 * bump * bump * tan2_l * torch.where(inside, 0.125 * q_i, zero) / sq_b  # d bump / d ci
+    diff_co = torch.where(valid, (s_fo * shape_fo * co + diff_shape) * dielectric * bump, zero)
+    diff_ci = torch.where(valid, s_fi * shape_fi * co * dielectric * bump + diff * bump_ci, zero)
+    spec_co = torch.where(valid, d * gi4 * go_co * bump, zero)
+    spec_ci = torch.where(valid, d * gi4_ci * g_o * bump + spec * bump_ci, zero)
+    spec_ch = torch.where(valid & (ch_raw > 1e-6), d_ch * gi4 * g_o * bump, zero)
+    ddiff = diff_co * dco + diff_ci * dci  # (T, K, N)
+    dspec = spec_co * dco + spec_ci * dci + spec_ch * dch
     d_sh = _sh_sum(_sh_basis_d(normal[None], t), sh)  # (T, K|1, N, 3)
-    d_normal = (ddiff[..., None] * base[None] + dspec[..., None] * fres) * irr + d_sh * albedo[None]
+    d_normal = torch.addcmul(ddiff[..., None] * base_irr, dspec[..., None], fres_irr) + d_sh * albedo[None]
     return pred, d_normal, d_base, d_rough, d_metal
 
 
