@@ -995,10 +995,10 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
     distance); ``relative_to`` (K, 3) log intensities: only one overall log scale moves (the colours are
     held); ``count``: add the steps to the progress total (False where the caller planned them); ``mean_tilt``:
     weight of the squared mean of the maps' normal gradients (a flat sample's mean normal is the camera axis,
-    :attr:`matcap.refine.settings.LightStageSettings.flat_tilt`). Each step's loss and gradient are summed over
-    the two halves of the pixels, side by side where torch has two threads or more; the
-    result does not depend on the thread count. Returns (lights, a copy without gradients; the last step's mean
-    data term)."""
+    :attr:`matcap.refine.settings.LightStageSettings.flat_tilt`). Each step's loss and gradient are the sums of
+    those of the two halves of the pixels, computed side by side where torch has two threads or more (each on
+    one-thread operations), so the result does not depend on the thread count. Returns (lights, a copy without
+    gradients; the last step's mean data term)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from matcap.refine.model import PixelParams
