@@ -3,6 +3,8 @@
     python benchmarks/bench_fit.py                      # known lights, 512^2, K=16, 2 threads; idle, then 2 busy
                                                         # processes; the old code (git archive of --old) and this one
     python benchmarks/bench_fit.py --load 0,2,3 --repeats 2 --estimated --old main --threads 2
+    python benchmarks/bench_fit.py --steps --old main   # milliseconds per step of the light fit (4,096 and 2,048
+                                                        # pixels) and per Jacobian of the per-pixel solve
 
 Each fit runs in its own subprocess on the photos that ``benchmarks/refine_check.py timing`` uses (a sphere rendered
 by the fit's own model under 16 directional lights, the perturbed maps as the start). "Busy" starts that many
@@ -67,7 +69,68 @@ def child(side: int, threads: int, estimated: bool) -> dict:
             "normal_deg": float(err.mean())}
 
 
-def _run(tree: Path, side: int, threads: int, estimated: bool, load: int, passive: bool) -> dict:
+def steps(threads: int, repeats: int = 5) -> dict:
+    """In this process: the fastest of ``repeats`` runs, in milliseconds per step, of 50 steps of the light fit with
+    the directions held on the 4,096 and the 2,048 pixels of a sphere under 16 directional lights (the light stage's
+    sizes where the lights are estimated and where their directions are known), and of the per-pixel solve's
+    Jacobian (``shade_jacobian``) of 16,384 of its pixels."""
+    import numpy as np
+    import torch
+
+    if threads:
+        torch.set_num_threads(threads)
+    from matcap.evaluation.toy import cone_lights
+    from matcap.refine import RefineSettings
+    from matcap.refine import fit as F
+    from matcap.refine import synthetic as S
+    from matcap.refine.model import LightParams, PixelParams, shade_directional, shade_jacobian
+
+    k, side = 16, 160
+    truth = S.sphere_maps(side)
+    m = truth.mask
+    n, b, r = (torch.from_numpy(a[m]) for a in (truth.normal, truth.base_color, truth.roughness))
+    dirs = torch.from_numpy(cone_lights(k, 50.0, seed=1)).float()
+    with torch.no_grad():
+        px = shade_directional(n, b, r, torch.zeros(len(n)), dirs, torch.full((k, 3), 2.5), torch.zeros(1, 9, 3))
+    obs = np.zeros((k,) + m.shape + (3,), np.float32)
+    obs[:, m] = px.numpy()
+    start = S.perturb(truth)
+    s = RefineSettings(seed=0)
+    arrays = F._maps_arrays(start)
+    out = {}
+
+    def best(run) -> float:
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            run()
+            times.append(time.perf_counter() - t0)
+        return min(times)
+
+    for count in (4096, 2048):
+        idx = np.sort(np.random.default_rng(0).choice(int(m.sum()), size=count, replace=False))
+        prob = F._Problem(torch, obs, m, arrays, np.ones(m.shape, np.float32), np.full((k, 3), np.inf, np.float32),
+                          torch.device("cpu"), idx)
+
+        def light_fit():
+            lights = LightParams("directional", dirs.clone(), torch.full((k, 3), 0.5), torch.zeros(1, 9, 3))
+            F._fit_lights(torch, prob, lights, s, F._Bar(None, s), "lights", 50, directions_free=False)
+        out[f"light_fit_{count}_ms"] = best(light_fit) / 50 * 1000
+    count = 16384
+    p = PixelParams.from_maps(*(torch.from_numpy(a[m][:count]) for a in (start.normal, start.base_color,
+                                                                          start.roughness, start.metallic)))
+    nrm = p.normal()
+    tangents = torch.stack([torch.cross(nrm, torch.tensor([1.0, 0.0, 0.0]).expand_as(nrm), dim=-1)] * 2)
+    with torch.no_grad(), F._one_thread(torch):
+        out["jacobian_16384_ms"] = best(lambda: shade_jacobian(nrm, p.base(), p.rough(), p.metal(), dirs[:, None],
+                                                              torch.full((k, 1, 3), 2.5), torch.zeros(1, 9, 3),
+                                                              tangents)) * 1000
+    return out
+
+
+def _run(tree: Path, job: list, load: int, passive: bool) -> dict:
+    """``job`` (the child's arguments: [side, threads, estimated] for a fit, ["steps", threads]) in a subprocess
+    on the code of ``tree``, beside ``load`` busy processes."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
     env.pop("OMP_WAIT_POLICY", None)
     if passive:  # as the matcap command sets it (matcap.cli)
@@ -75,7 +138,7 @@ def _run(tree: Path, side: int, threads: int, estimated: bool, load: int, passiv
     spin = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(load)]
     try:
         proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--_child",
-                               json.dumps([side, threads, estimated])], cwd=tree, capture_output=True, text=True,
+                               json.dumps(job)], cwd=tree, capture_output=True, text=True,
                               env=env)
     finally:
         for p in spin:
@@ -108,14 +171,28 @@ def main(argv: list[str] | None = None) -> int:
                     help="OpenMP threads' waiting: default (libgomp spins a while, then sleeps), passive (they "
                          "sleep: what the matcap command sets), or both (a row each)")
     ap.add_argument("--old", default=None, help="git revision of the old code (default: none, the new code only)")
+    ap.add_argument("--steps", action="store_true",
+                    help="time single steps (the light fit's, the per-pixel solve's Jacobian) instead of whole fits")
     ap.add_argument("--_child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args._child is not None:
-        print(json.dumps(child(*json.loads(args._child))))
+        what = json.loads(args._child)
+        print(json.dumps(steps(what[1]) if what[0] == "steps" else child(*what)))
         return 0
     loads = [int(v) for v in args.load.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
         trees = ([("old " + args.old, _old_tree(args.old, tmp))] if args.old else []) + [("new", ROOT)]
+        if args.steps:
+            print(f"Milliseconds per step (the fastest of 5 runs), {args.threads or 'default'} threads, "
+                  f"idle, OpenMP wait passive")
+            print("| code | light fit, 4,096 pixels | light fit, 2,048 pixels | Jacobian, 16,384 pixels, one thread |")
+            print("|---|---:|---:|---:|")
+            for _ in range(args.repeats):
+                for name, tree in trees:
+                    r = _run(tree, ["steps", args.threads], 0, True)
+                    print(f"| {name} | {r['light_fit_4096_ms']:.2f} | {r['light_fit_2048_ms']:.2f} | "
+                          f"{r['jacobian_16384_ms']:.1f} |", flush=True)
+            return 0
         what = "lights estimated" if args.estimated else "known lights"
         print(f"Fit at {args.side}^2, K=16, {what}, {args.threads or 'default'} threads")
         print("| code | OpenMP wait | busy processes | wall s | CPU s | lights s | maps s | peak RSS MB | "
@@ -126,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
             for _ in range(args.repeats):
                 for wait in waits:
                     for name, tree in trees:
-                        r = _run(tree, args.side, args.threads, args.estimated, load, wait == "passive")
+                        r = _run(tree, [args.side, args.threads, args.estimated], load, wait == "passive")
                         print(f"| {name} | {wait} | {load} | {r['wall']:.1f} | {r['cpu']:.1f} | {r['lights_s']:.1f} | "
                               f"{r['maps_s']:.1f} | {r['rss_mb']:.0f} | {r['normal_deg']:.3f} |", flush=True)
     return 0
