@@ -318,14 +318,14 @@ def _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, tange
     q_i = (-2.0 / (ci * ci * ci))[None]  # d tan2_i / d ci
     gi4_ci = (-0.25 * g_i * g_i * a2 / sq_i / (4.0 * ci))[None] * q_i - gi4 / ci[None]  # d gi4 / d ci
     go_co = -0.25 * g_o * g_o * a2[None] * (-2.0 / (co * co * co)) / sq_o  # d g_o / d co
-    d_ch = -4.0 * d * ch * (a2[None] - 1.0) / denom  # d D / d ch
+    dd_ch = -4.0 * d * ch * (a2[None] - 1.0) / denom  # d D / d ch
     inside = ((0.125 * tan2_i > 0.0) & (0.125 * tan2_i < 1.0))[None]
     bump_ci = -0.25 * bump * bump * tan2_l * torch.where(inside, 0.125 * q_i, zero) / sq_b  # d bump / d ci
     diff_co = torch.where(valid, (s_fo * shape_fo * co + diff_shape) * dielectric * bump, zero)
     diff_ci = torch.where(valid, s_fi * shape_fi * co * dielectric * bump + diff * bump_ci, zero)
     spec_co = torch.where(valid, d * gi4 * go_co * bump, zero)
     spec_ci = torch.where(valid, d * gi4_ci * g_o * bump + spec * bump_ci, zero)
-    spec_ch = torch.where(valid & (ch_raw > 1e-6), d_ch * gi4 * g_o * bump, zero)
+    spec_ch = torch.where(valid & (ch_raw > 1e-6), dd_ch * gi4 * g_o * bump, zero)
     ddiff = diff_co * dco + diff_ci * dci  # (T, K, N)
     dspec = spec_co * dco + spec_ci * dci + spec_ch * dch
     d_sh = _sh_sum(_sh_basis_d(normal[None], t), sh)  # (T, K|1, N, 3)
