@@ -27,32 +27,42 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _sphere(side: int, k: int = 16):
+    """The benchmark's capture: a sphere's maps (``side`` px) rendered by the fit's own model under ``k`` directional
+    lights of irradiance 2.5. Returns (true MaterialMaps, directions (k, 3) torch, photos (k, side, side, 3)
+    float32, the perturbed maps the fit starts from)."""
+    import numpy as np
+    import torch
+
+    from matcap.evaluation.toy import cone_lights
+    from matcap.refine import synthetic as S
+    from matcap.refine.model import shade_directional
+
+    truth = S.sphere_maps(side)
+    m = truth.mask
+    n, b, r = (torch.from_numpy(a[m]) for a in (truth.normal, truth.base_color, truth.roughness))
+    dirs = torch.from_numpy(cone_lights(k, 50.0, seed=1)).float()
+    with torch.no_grad():
+        px = shade_directional(n, b, r, torch.zeros(len(n)), dirs, torch.full((k, 3), 2.5), torch.zeros(1, 9, 3))
+    photos = np.zeros((k, side, side, 3), np.float32)
+    photos[:, m] = px.numpy()
+    return truth, dirs, photos, S.perturb(truth)
+
+
 def child(side: int, threads: int, estimated: bool) -> dict:
     """One fit in this process: seconds, CPU seconds, stage timings, peak RSS, normal error."""
     import resource
 
-    import numpy as np
     import torch
 
     if threads:
         torch.set_num_threads(threads)
     from matcap.evaluation.metrics import angular_error_map
-    from matcap.evaluation.toy import cone_lights
     from matcap.lightfiles import KnownLights
     from matcap.refine import RefineSettings, refine
-    from matcap.refine import synthetic as S
-    from matcap.refine.model import shade_directional
 
-    k = 16
-    truth = S.sphere_maps(side)
+    truth, lights, photos, start = _sphere(side)
     m = truth.mask
-    n, b, r = (torch.from_numpy(a[m]) for a in (truth.normal, truth.base_color, truth.roughness))
-    lights = torch.from_numpy(cone_lights(k, 50.0, seed=1)).float()
-    with torch.no_grad():
-        px = shade_directional(n, b, r, torch.zeros(len(n)), lights, torch.full((k, 3), 2.5), torch.zeros(1, 9, 3))
-    photos = np.zeros((k, side, side, 3), np.float32)
-    photos[:, m] = px.numpy()
-    start = S.perturb(truth)
     known = None if estimated else KnownLights(lights.numpy().astype(float), None, "file", "bench", "order")
 
     def cpu() -> float:
@@ -79,22 +89,12 @@ def steps(threads: int, repeats: int = 5) -> dict:
 
     if threads:
         torch.set_num_threads(threads)
-    from matcap.evaluation.toy import cone_lights
     from matcap.refine import RefineSettings
     from matcap.refine import fit as F
-    from matcap.refine import synthetic as S
-    from matcap.refine.model import LightParams, PixelParams, shade_directional, shade_jacobian
+    from matcap.refine.model import LightParams, PixelParams, shade_jacobian
 
-    k, side = 16, 160
-    truth = S.sphere_maps(side)
-    m = truth.mask
-    n, b, r = (torch.from_numpy(a[m]) for a in (truth.normal, truth.base_color, truth.roughness))
-    dirs = torch.from_numpy(cone_lights(k, 50.0, seed=1)).float()
-    with torch.no_grad():
-        px = shade_directional(n, b, r, torch.zeros(len(n)), dirs, torch.full((k, 3), 2.5), torch.zeros(1, 9, 3))
-    obs = np.zeros((k,) + m.shape + (3,), np.float32)
-    obs[:, m] = px.numpy()
-    start = S.perturb(truth)
+    truth, dirs, obs, start = _sphere(160)
+    k, m = len(dirs), truth.mask
     s = RefineSettings(seed=0)
     arrays = F._maps_arrays(start)
     out = {}
