@@ -588,10 +588,10 @@ def calibrate(images: Sequence[np.ndarray], ball_mask: np.ndarray | None = None,
               names: Sequence[str] | None = None) -> Calibration:
     """Light directions from a mirror ball in K photos (one light each, camera and ball fixed).
 
-    images: K >= 2 arrays (H, W, 3) float32 linear RGB (any scale). ball_mask: (H, W) bool disc of the ball (default: found
-    automatically). focal_px: focal length in pixels for a perspective camera (principal point at the image
-    centre); default orthographic (see the module docstring for both models). names: K photo names for messages
-    and ``lights.json`` (default ``photo 0``, ...).
+    images: K >= 2 arrays (H, W, 3) float32 linear RGB (any scale). ball_mask: (H, W) bool disc of the ball
+    (default: found automatically). focal_px: focal length in pixels for a perspective camera (principal point at
+    the image centre); default orthographic (see the module docstring for both models). names: K photo names for
+    messages and ``lights.json`` (default ``photo 0``, ...).
     Raises :class:`MatcapError` (one line) for fewer than 2 photos, mixed sizes, a wrong mask size, no ball found,
     or a photo without a usable highlight.
     """

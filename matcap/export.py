@@ -349,8 +349,9 @@ def export(
                                      "channels": v[1], "setting": v[2]} for k, v in spec.slots.items()}},
             "normal_convention": {"gl": "OpenGL (+Y, green up)", "dx": "DirectX (-Y, green down)"}[normal],
             "conventions": {
-                "tangent_space": "flat sample, UV = image axes: U right, V up (image row 0 = V 1); T = +U, B = +V, N out "
-                                 "of the surface; NAME_normal.png is OpenGL (+Y), NAME_normal_dx.png has G = 1 - G",
+                "tangent_space": "flat sample, UV = image axes: U right, V up (image row 0 = V 1); T = +U, B = +V, "
+                                 "N out of the surface; NAME_normal.png is OpenGL (+Y), NAME_normal_dx.png has "
+                                 "G = 1 - G",
                 "tangent_frame": {"kind": frame, "rows_T_B_N_in_camera_space": np.round(m, 8).tolist()},
                 "normal_encoding": "(n + 1) / 2 per channel; off-mask texels are flat (0.5, 0.5, 1)",
                 "colour": "basecolor sRGB-encoded (IEC 61966-2-1); all other maps linear (Non-Color)",

@@ -179,7 +179,8 @@ def _page(info: dict) -> str:
         video = (f'<figure><video src="{e(anim["mp4"])}" autoplay loop muted playsinline controls></video>'
                  f'<figcaption>orbit (MP4)</figcaption></figure>')
     elif "webp" in anim:
-        video = f'<figure><img src="{e(anim["webp"])}" alt="orbit animation (WebP)"><figcaption>orbit (WebP)</figcaption></figure>'
+        video = (f'<figure><img src="{e(anim["webp"])}" alt="orbit animation (WebP)">'
+                 f'<figcaption>orbit (WebP)</figcaption></figure>')
     s = info["settings"]
     settings = "".join(f"<tr><th>{e(str(k))}</th><td>{e(str(v))}</td></tr>" for k, v in s.items())
     return f"""<!DOCTYPE html>

@@ -11,8 +11,9 @@ Two integrators:
 * ``"frankot-chellappa"`` (default): the least-squares integrable surface by projection onto Fourier bases
   (Frankot & Chellappa 1988), with the discrete forward-difference operator (so planes come back exactly). The
   gradient field is first mirror-extended (even in h, odd in the gradient across each border), so the periodic
-  FFT solution has no wrap-around artefacts; this is the same as a DCT/Neumann Poisson solve. Fast (scipy.fft) and smooth, but it integrates across the mask edge and across depth
-  discontinuities (gradients outside the mask are taken as 0).
+  FFT solution has no wrap-around artefacts; this is the same as a DCT/Neumann Poisson solve. Fast (scipy.fft)
+  and smooth, but it integrates across the mask edge and across depth discontinuities (gradients outside the
+  mask are taken as 0).
 * ``"periodic"``: the same Fourier projection on the grid itself, taken as a torus (no mirror extension), for a
   tileable normal map (``matcap tile``): the height then tiles too, and a gradient field with a net slope (which
   no periodic height has) loses only that mean slope.
@@ -32,7 +33,8 @@ METHODS = ("frankot-chellappa", "poisson-masked", "periodic")
 
 
 def normals_to_gradients(normal: np.ndarray, mask: np.ndarray | None = None, max_slope: float = 20.0):
-    """(∂h/∂column, ∂h/∂row) from camera-space normals, slopes clipped to ±``max_slope``; 0 outside ``mask``."""
+    """(∂h/∂column, ∂h/∂row) from camera-space normals, slopes clipped to ±``max_slope``; 0 outside
+    ``mask``."""
     n = np.asarray(normal, dtype=np.float64)
     if n.ndim != 3 or n.shape[2] != 3:
         raise ValueError(f"normal must be (H, W, 3), got {n.shape}")
@@ -186,8 +188,9 @@ def ambient_occlusion(height: np.ndarray, mask: np.ndarray | None = None, *, rad
     ``radius`` pixels (``steps`` samples, denser near the pixel) is measured *relative to the local tangent plane*
     (so a tilted but flat surface is unoccluded), and a slice whose horizon rises by elevation ``e`` keeps
     ``cos(e)^2`` of its cosine-weighted sky. AO is the mean over azimuths. ``wrap``: the height field tiles
-    (occluders are searched across the borders, slopes taken periodically), so the occlusion tiles too. For the floor of a long trench of width
-    ``w`` and depth ``d`` this gives ``1 / sqrt(1 + (2 d / w)^2)`` exactly in the continuum limit.
+    (occluders are searched across the borders, slopes taken periodically), so the occlusion tiles too. For the
+    floor of a long trench of width ``w`` and depth ``d`` this gives ``1 / sqrt(1 + (2 d / w)^2)`` exactly in the
+    continuum limit.
     """
     h = np.asarray(height, np.float64)
     if h.ndim != 2:

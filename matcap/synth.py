@@ -57,7 +57,8 @@ def catalog_from_dir(assets: str | os.PathLike | None) -> AssetCatalog:
     root = Path(assets)
     if not root.is_dir():
         raise MatcapError(f"--assets {assets}: no such folder")
-    meshes = sorted(f"meshes/{p.name}" for p in (root / "meshes").glob("*") if p.suffix.lower() in (".ply", ".obj", ".stl", ".off"))
+    meshes = sorted(f"meshes/{p.name}" for p in (root / "meshes").glob("*")
+                    if p.suffix.lower() in (".ply", ".obj", ".stl", ".off"))
     envs = sorted(f"envmaps/{p.name}" for p in (root / "envmaps").glob("*") if p.suffix.lower() in (".exr", ".hdr"))
     texs = sorted(f"textures/{p.name}" for p in (root / "textures").glob("*")
                   if p.is_dir() and any(p.glob("basecolor.*")))

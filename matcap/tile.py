@@ -28,9 +28,10 @@ Steps (:func:`tile_maps` does 1-5 on :class:`MaterialMaps`, :func:`tile` adds th
 5. **Check.** :func:`seam_energy`: per map, the gradient energy across the tile borders (the tile wrapped by half
    its size) against the interior's; recorded in ``capture.json`` with the cut's.
 
-Limits (measured in docs/export.md, "Tileable texture sets"): the output is a re-arrangement of the square, so a sample with a gradient of light or colour across it
-(vignetting, an uneven lamp) keeps it as a smooth low-frequency change; strongly structured patterns (bricks,
-planks) may show a cut through a feature where no path of low error exists.
+Limits (measured in docs/export.md, "Tileable texture sets"): the output is a re-arrangement of the square, so a
+sample with a gradient of light or colour across it (vignetting, an uneven lamp) keeps it as a smooth
+low-frequency change; strongly structured patterns (bricks, planks) may show a cut through a feature where no path
+of low error exists.
 """
 from __future__ import annotations
 

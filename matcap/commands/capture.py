@@ -68,7 +68,8 @@ def register(sub) -> None:
                         "whose lamps are found from the falloff of their light over it, unless --lights / --ball "
                         "give them (default: decided from the networks' normals, and said in one line)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty --out folder")
-    p.add_argument("--relight", action="append", metavar="ENV", help="also relight under this EXR/HDR env map (repeatable)")
+    p.add_argument("--relight", action="append", metavar="ENV",
+                   help="also relight under this EXR/HDR env map (repeatable)")
     p.add_argument("--point", type=_xyz, action="append", metavar="X,Y,Z", help="also relight under a point light here")
     p.add_argument("--spp", type=int, help="samples per pixel for --relight / --point renders (default 16)")
     p.add_argument("--export", metavar="DIR", help="also export an engine-ready texture set to DIR")

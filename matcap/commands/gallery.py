@@ -9,7 +9,8 @@ def register(sub) -> None:
         description="Render SVBRDF maps (capture result or texture set) under each environment map and under a "
                     "light circling the object; write contact sheets, orbit.gif (+ mp4 or webp) and index.html.",
     )
-    p.add_argument("source", help="capture result folder (normal.exr ...) or texture set (basecolor, arm/orm, normal_gl)")
+    p.add_argument("source",
+                   help="capture result folder (normal.exr ...) or texture set (basecolor, arm/orm, normal_gl)")
     p.add_argument("--envs", nargs="+", metavar="ENV_DIR_OR_FILE",
                    help="environment maps (.exr/.hdr) or folders of them (default: the bundled studio map)")
     p.add_argument("--orbit", type=int, default=36, metavar="N", help="orbit frames (default 36; 0 = none)")

@@ -179,7 +179,8 @@ def perturb(maps: MaterialMaps, seed: int = 0, normal_deg: float = 8.0, rough_sh
     m = maps.mask
     n[~m] = 0
     r = np.where(m, maps.roughness + rough_shift * np.sign(0.5 - maps.roughness), 0)
-    return MaterialMaps(normal=n.astype(np.float32), mask=m, base_color=(maps.base_color * base_gain).astype(np.float32),
+    return MaterialMaps(normal=n.astype(np.float32), mask=m,
+                        base_color=(maps.base_color * base_gain).astype(np.float32),
                         roughness=r.astype(np.float32), metallic=np.where(m, 0.1, 0).astype(np.float32))
 
 
