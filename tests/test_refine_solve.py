@@ -216,9 +216,12 @@ def test_the_pixel_solve_does_not_depend_on_the_chunks():
         assert all(torch.equal(a, b) for a, b in zip(outs[0].tensors(), other.tensors()))
 
 
-def test_the_light_fit_does_not_depend_on_the_thread_count():
+def test_the_light_fit_does_not_depend_on_the_thread_count(monkeypatch):
     """The light fit sums each step's loss and gradient over two halves of its pixels, side by side where torch
-    has two threads: the lights and the last data term are the same bits on one thread and on two."""
+    has two threads: the lights and the last data term are the same bits on one thread and on two. (The process
+    is told it may use two CPUs, so that the halves run side by side on a one-CPU machine too.)"""
+    monkeypatch.setattr(F.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert F._workers(2) == 2
     _, _, prob, lights, _ = _glossy_sphere_problem(32)
     start = LightParams("directional", lights.vec.clone(), lights.log_intensity + 0.3, lights.sh.clone())
     s = RefineSettings(seed=0)
