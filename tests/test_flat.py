@@ -124,7 +124,7 @@ def test_flat_fit_recovers_the_normals_of_a_principled_render():
 def test_flat_fit_with_light_directions_alone_keeps_the_sample_level():
     """Distant lights whose directions alone are given, each photo a different strength (a lamp moved by hand): each
     photo's intensity is fitted, and on a plane it trades with a tilt of the whole sample toward that photo's light;
-    the light fit holds the mean normal to the camera axis (``lights.flat_tilt``)."""
+    the light fit holds the mean normal to the camera axis (``lights.flat_mean_held``)."""
     from matcap.lightfiles import KnownLights
     from matcap.refine import RefineSettings, refine
     from renderers.relight import render
@@ -139,12 +139,43 @@ def test_flat_fit_with_light_directions_alone_keeps_the_sample_level():
     known = KnownLights(dirs, None, "file", "directions", "order")
     start = _maps(np.dstack([np.zeros_like(n[..., :2]), np.ones_like(n[..., :1])]), np.full_like(albedo, 0.5), 0.5)
     err = {}
-    for weight in (RefineSettings().lights.flat_tilt, 0.0):
-        result = refine(photos, start, RefineSettings().replace({"lights.flat_tilt": weight}), lights=known, flat=True)
-        err[weight] = _angle(result.maps.normal, n).mean()
-        assert result.report["lights"]["mean_normal_held"] is (weight > 0)
-    assert err[RefineSettings().lights.flat_tilt] < 0.8, err  # measured 0.61
-    assert err[0.0] > 3.0, err  # measured 8.7: the sample tilted as a whole by 8.3 degrees
+    assert RefineSettings().lights.flat_mean_held
+    for held in (True, False):
+        result = refine(photos, start, RefineSettings().replace({"lights.flat_mean_held": held}), lights=known,
+                        flat=True)
+        err[held] = _angle(result.maps.normal, n).mean()
+        assert result.report["lights"]["mean_normal_held"] is held
+    assert err[True] < 0.8, err  # measured 0.66
+    assert err[False] > 3.0, err  # measured 8.5: the sample tilted as a whole
+
+
+def test_flat_fit_under_given_lamps_takes_the_lights_power_from_the_photos():
+    """A light file's intensities are relative: under near lamps a plane's highlights show their overall power, and
+    the fit takes it from the photos (``lights.flat_level_free``) where the networks' base colour is far too dark;
+    with the level held to the networks' it stays dark and the roughness takes up the difference."""
+    from matcap.lightfiles import KnownLights
+    from matcap.refine import RefineSettings, refine
+    from renderers.relight import render
+    from scenes.lights import PointLight
+
+    n, albedo = _swatch(48)
+    lamps = _lamps(12, (1.0, 2.0))
+    power = np.array([2.0 * (p @ p) for p in lamps])
+    truth = _maps(n, albedo, 0.3)
+    photos = [render(truth, [PointLight(tuple(float(v) for v in p), (e, e, e))], spp=16, seed=i,
+                     texture_filter="nearest") for i, (p, e) in enumerate(zip(lamps, power))]
+    known = KnownLights(lamps / np.linalg.norm(lamps, axis=1, keepdims=True), np.repeat(0.1 * power[:, None], 3, 1),
+                        "file", "lamps", "order", positions=lamps)
+    start = _maps(n, 0.4 * albedo, 0.5)  # the networks' base colour 2.5 times too dark
+    level, rough = {}, {}
+    for free in (True, False):
+        result = refine(photos, start, RefineSettings().replace({"lights.flat_level_free": free}), lights=known,
+                        flat=True)
+        level[free] = float(result.maps.base_color.mean() / albedo.mean())
+        rough[free] = float(np.sqrt(((result.maps.roughness - 0.3) ** 2).mean()))
+        assert (result.report["lights"]["base_level"] is None) is not free
+    assert abs(level[True] - 1.0) < 0.1 and rough[True] < 0.05, (level, rough)  # measured 1.00, 0.026
+    assert level[False] < 0.8 and rough[False] > 2 * rough[True], (level, rough)  # measured 0.45, 0.19
 
 
 def test_found_lamps_keep_only_the_fine_tilts():

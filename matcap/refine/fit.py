@@ -531,8 +531,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     Stages: (1) lights: the given directions (and point-light positions) are held; the per-photo intensities (or,
     where the file gives relative intensities, one overall scale, their colours held) and one ambient shared by
     every photo are fitted, first by least squares, then jointly with a subsample's maps under the Principled model
-    (``lights.iters`` Adam steps; on a flat sample whose given lights come without intensities, with the subsample's
-    mean normal held to the camera axis, ``lights.flat_tilt``). Distant lights whose intensities the file gives are
+    (:func:`_fit_intensities`; on a flat sample whose given lights come without intensities, with the subsample's
+    mean normal held to the camera axis, ``lights.flat_mean_held``). Distant lights whose intensities the file gives are
     taken as they are, at the least-squares scale, with the file's ambient (a ``lights.json``'s ``sh``; else none)
     at that scale; the start normals come from semi-calibrated Lambertian least squares (:func:`known_irradiance`);
     (2) the per-pixel solve (:func:`_solve_maps`) from calibrated photometric-stereo normals, then the roughness
@@ -609,14 +609,23 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
             lights.sh = torch.as_tensor(amb, dtype=torch.float32, device=device) * offset.exp()
     # a flat sample's given lights without intensities: the sample's mean normal held (found lamps have their wide
     # tilts taken out after the per-pixel solve instead, pixels.found_lamps_detail)
-    tilt_held = flat is not None and given is None and known.source != "estimated" and s.lights.flat_tilt > 0
+    tilt_held = flat is not None and given is None and known.source != "estimated" and s.lights.flat_mean_held
     # distant lights whose intensities are given are taken as they are; the others are fitted
-    light_iters = 0 if inv_distance is None and given is not None else s.lights.iters
-    ambient = ("none" if s.model.ambient == "none" else "fitted" if light_iters > 0
+    fitted = (inv_distance is not None or given is None) and s.lights.known_iters > 0
+    # a flat sample whose lights' ratios are known: the photos set their overall power (each photo's own intensity
+    # fitted leaves too much freedom for that)
+    level_free = fitted and flat is not None and given is not None and s.lights.flat_level_free
+    # nor can a plane's photos tell a constant ambient from each photo's own intensity: there it stays as given
+    ambient_free = not (flat is not None and given is None)
+    ambient = ("none" if s.model.ambient == "none" else "fitted" if fitted and ambient_free
                else "given" if known.ambient is not None else "none")  # what fit.json says of it
-    if light_iters:
-        lights, _ = _fit_lights(torch, prob, lights, s, bar, "lights", light_iters, directions_free=False,
-                                relative_to=given_log, mean_tilt=s.lights.flat_tilt if tilt_held else 0.0)
+    light_iters, level = 0, 1.0
+    if fitted:
+        lights, level, light_iters = _fit_intensities(torch, prob, lights, s, bar, relative_to=given_log,
+                                                      mean_held=tilt_held, level_free=level_free,
+                                                      ambient_free=ambient_free)
+        if level != 1.0:  # the per-pixel solve's prior: the networks' base colour at the level the photos set
+            arrays = dict(arrays, base=np.clip(arrays["base"] * level, 0.0, 1.0).astype(np.float32))
     timings["lights_s"] = time.perf_counter() - t0
 
     # ---- 2. per pixel
@@ -648,6 +657,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     timings["total_s"] = time.perf_counter() - t_start
     report = {
         "lights": {**known.record(), "directions": "held", "ambient": ambient, "mean_normal_held": tilt_held,
+                   "base_level": round(level, 4) if level_free else None,
                    "solved_fraction": photo_report["solved_fraction"]},
         **({"flat": flat} if flat is not None else {}),
         "psnr_db": [round(p, 3) for p in out.psnr],
@@ -988,14 +998,10 @@ class _Adam:
 
 
 def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: str, iters: int,
-                directions_free: bool = True, maps_free: bool = True, relative_to=None, count: bool = True,
-                mean_tilt: float = 0.0):
-    """Adam on the lights (and, with ``maps_free``, the subsample's maps, anchored by the prior) under the full
-    loss :func:`_loss` of the pixels ``prob``. ``directions_free`` False holds the directions (and a near lamp's
-    distance); ``relative_to`` (K, 3) log intensities: only one overall log scale moves (the colours are
-    held); ``count``: add the steps to the progress total (False where the caller planned them); ``mean_tilt``:
-    weight of the squared mean of the maps' normal gradients (a flat sample's mean normal is the camera axis,
-    :attr:`matcap.refine.settings.LightStageSettings.flat_tilt`). Each step's loss and gradient are the sums of
+                maps_free: bool = True):
+    """Estimated lights: Adam on the lights, their directions (and a near lamp's distance) included, and, with
+    ``maps_free``, on the subsample's maps, anchored by the prior, under the full loss :func:`_loss` of the pixels
+    ``prob`` (the caller adds the steps to the progress total). Each step's loss and gradient are the sums of
     those of the two halves of the pixels, computed side by side where torch has two threads or more (each on
     one-thread operations), so the result does not depend on the thread count. Returns (lights, a copy without
     gradients; the last step's mean data term)."""
@@ -1004,15 +1010,8 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
     from matcap.refine.model import PixelParams
 
     px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
-    offset = None
-    light_t = [lights.sh] if s.model.ambient != "none" else []
-    if relative_to is not None:
-        offset = (lights.log_intensity - relative_to).mean().reshape(1, 1).detach().clone()
-        light_t.append(offset)
-    else:
-        light_t.append(lights.log_intensity)
-    if directions_free:
-        light_t += [lights.vec] + ([lights.inv_distance] if lights.kind == "near" else [])
+    light_t = ([lights.sh] if s.model.ambient != "none" else []) + [lights.log_intensity, lights.vec]
+    light_t += [lights.inv_distance] if lights.kind == "near" else []
     groups = [(light_t, s.lights.lr)]
     if maps_free:
         groups.append((px.tensors(), s.lights.lr_pixel))
@@ -1021,18 +1020,15 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
         t.requires_grad_(True)
     opt = _Adam(torch, groups)
     data_mean = float("nan")
-    if count:
-        bar.add_total(iters)
-    near = directions_free and lights.kind == "near"
+    near = lights.kind == "near"
     n = len(prob)
     cut = (n + 1) // 2
     halves = [(sl, prob.part(sl)) for sl in (slice(0, cut), slice(cut, n)) if sl.stop > sl.start]
 
     def half(sl, part):
         """(loss sum / n, data sum, gradients of the loss by ``leaves``) of the pixels ``sl``."""
-        hl = lights if offset is None else replace(lights, log_intensity=relative_to + offset)
         hp = PixelParams(*(t[sl] for t in px.tensors()))
-        per, data = _loss(torch, part, hp, hl, s, s.loss.cauchy, s.model.fit_brdf)
+        per, data = _loss(torch, part, hp, lights, s, s.loss.cauchy, s.model.fit_brdf)
         loss = per.sum() / n
         grads = torch.autograd.grad(loss, leaves, allow_unused=True)
         return float(loss.detach()), float(data.detach().sum()), grads
@@ -1049,11 +1045,6 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
                 for i, t in enumerate(leaves):
                     gs = [p[2][i] for p in parts if p[2][i] is not None]
                     t.grad = sum(gs[1:], gs[0]) if gs else None
-                if mean_tilt > 0 and maps_free:
-                    tilt = mean_tilt * px.grad.mean(0).square().sum()
-                    (g,) = torch.autograd.grad(tilt, [px.grad])
-                    px.grad.grad = g if px.grad.grad is None else px.grad.grad + g
-                    loss += float(tilt)
                 opt.step()
                 if near:  # a negative inverse distance, or a direction behind the framing plane, would put the
                     with torch.no_grad():  # lamp where it lights nothing the camera sees
@@ -1064,11 +1055,87 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
         finally:
             if pool is not None:
                 pool.shutdown(wait=True)
-    if offset is not None:
-        lights.log_intensity = (relative_to + offset).detach()
     for t in lights.tensors():
         t.requires_grad_(False)
     return lights.detached(), data_mean
+
+
+def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, relative_to=None,
+                     mean_held: bool = False, level_free: bool = False, ambient_free: bool = True):
+    """Lights whose directions (and a near lamp's distance) are known: their log intensities (K, 3) (with
+    ``relative_to`` (K, 3) log intensities, only one overall log scale, the colours and ratios held) and the
+    ambient's constant term (``lights.sh[:, 0]``, with ``ambient_free`` and unless ``model.ambient`` is "none";
+    its higher orders held), fitted with the maps of the pixels ``prob``
+    (anchored by the prior) under the loss of :func:`_loss`: Levenberg-Marquardt on the whole
+    (:func:`matcap.refine.solve.joint_levenberg_marquardt`; the intensities and the ambient are parameters every
+    pixel shares, each pixel's maps its own), ``lights.known_iters`` iterations at most. ``mean_held``: the pixels'
+    mean normal gradient is held at 0 (a flat sample's mean normal is the camera axis). ``level_free``: the base
+    colour's prior holds its pattern only, one factor on the networks' base colour solved with the rest (the
+    photos then set the lights' overall power). Returns (lights, a copy without gradients; that factor (1 where
+    not free); iterations done)."""
+    from matcap.refine.model import SH_A, SH_C0, PixelParams, sh_irradiance
+    from matcap.refine.solve import joint_levenberg_marquardt
+
+    px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
+    theta, residuals, jacobian, _ = _pixel_residuals(torch, prob, px.tensors(), s)
+    k_count = prob.obs.shape[0]
+    dev, dt = theta.device, theta.dtype
+    ambient = ambient_free and s.model.ambient != "none"
+    n_sh = lights.sh.shape[0]
+    entry = torch.arange(k_count * 3, device=dev)  # a residual entry k * 3 + c: photo k, channel c
+    photo, channel = entry // 3, entry % 3
+    if relative_to is None:
+        start, cols_i = lights.log_intensity.reshape(-1), entry
+    else:
+        start, cols_i = (lights.log_intensity - relative_to).mean().reshape(1), torch.zeros_like(entry)
+    n_i = start.shape[0]
+    # the ambient's constant term (order 0) alone moves: its higher orders would bend to fit what the model misses
+    # (a cast shadow, an interreflection) rather than a room's light
+    shared = torch.cat([start, lights.sh[:, 0].reshape(-1)]) if ambient else start
+    if level_free:  # its last entry: the log of the factor on the networks' base colour
+        shared = torch.cat([shared, shared.new_zeros(1)])
+    n_light = shared.shape[0] - int(level_free)
+    col_level = torch.tensor([n_light], device=dev)
+    sh_photo = photo if n_sh > 1 else torch.zeros_like(photo)
+    cols_sh = n_i + sh_photo * 3 + channel
+
+    every = torch.arange(len(prob), device=dev)
+
+    def lights_of(v):
+        log_i = v[:n_i].reshape(k_count, 3) if relative_to is None else relative_to + v[0]
+        sh = torch.cat([v[n_i:n_light].reshape(n_sh, 1, 3), lights.sh[:, 1:]], 1) if ambient else lights.sh
+        return replace(lights, log_intensity=log_i, sh=sh)
+
+    def level_of(v):
+        return v[n_light] if level_free else None
+
+    def flat(x):
+        return x.permute(1, 0, 2).reshape(x.shape[1], -1)
+
+    def jac(t, v):
+        hl = lights_of(v)
+        robust, q, jr, jq, st = jacobian(t, every, hl, state=True, level=level_of(v))
+        albedo = ((1.0 - st["metal"])[:, None] * st["base"] / math.pi)[None]  # (1, N, 3)
+        ambient_part = sh_irradiance(st["normal"], hl.sh) * albedo
+        slots = [(cols_i, flat((st["pred"] - ambient_part) * st["free"]))]  # d pred / d log intensity: the direct part
+        if ambient:  # d pred / d sh_0: the albedo times A_0 Y_0
+            slots.append((cols_sh, flat(st["free"] * albedo * (SH_A[0] * SH_C0))))
+        qslots = [(col_level.expand(q.shape[1]), st["d_level"])] if level_free else []
+        return robust, q, jr, jq, slots, qslots
+
+    def project(t):
+        if not mean_held:
+            return t
+        return torch.cat([t[:, :2] - t[:, :2].mean(0), t[:, 2:]], 1)
+
+    bar.add_total(s.lights.known_iters)
+    with _one_thread(torch):
+        _, shared, done = joint_levenberg_marquardt(
+            lambda t, v: residuals(t, every, lights_of(v), level_of(v)), jac, theta, shared, prob.weight / 3.0,
+            s.loss.cauchy, s.lights.known_iters, project=project, on_step=lambda loss: bar.step("lights", loss))
+    bar.add_total(done - s.lights.known_iters)
+    level = float(level_of(shared).exp()) if level_free else 1.0
+    return lights_of(shared).detached(), level, done
 
 
 # ----------------------------------------------------------------------------------------------- estimated lights
@@ -1220,7 +1287,7 @@ def _light_stage(torch, ph: _Photos, chk: _Check, model: str, s: RefineSettings,
     lights = _init_lights(torch, prob, s, device, chk.linear.directions if trusted else None)
 
     def joint(lights, iters, label):  # kept maps: the lights are fitted to them as they are
-        return _fit_lights(torch, prob, lights, s, bar, label, iters, maps_free=trusted, count=False)
+        return _fit_lights(torch, prob, lights, s, bar, label, iters, maps_free=trusted)
 
     iters = s.lights.iters if trusted else s.lights.kept_iters
     compare = gate and s.model.light != "point"  # the loss ratio needs distant lamps fitted as long
@@ -1805,14 +1872,31 @@ def _solve_pixels(torch, prob: _Problem, px0, lights, s, c, iters, bar, label, m
 
 
 def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
-    """:func:`matcap.refine.solve.levenberg_marquardt` on :func:`_loss` of the pixels ``part``: the same data
-    term (Cauchy, clipped highlights a lower bound only, weighted per pixel and averaged over the colour
-    channels) and the same priors, as residuals. ``start``: the four :class:`PixelParams` tensors, and where the
-    pixels mix the object with what lies behind them (``part.backdrop``) their coverage logits; returns them.
-    Such a pixel's model is coverage x the Principled model + (1 - coverage) x the backdrop, with a prior
-    (``priors.cover``) on 1 - coverage."""
-    from matcap.refine.model import PixelParams, shade_jacobian
+    """:func:`matcap.refine.solve.levenberg_marquardt` on :func:`_loss` of the pixels ``part`` with the lights
+    fixed (:func:`_pixel_residuals`). ``start``: the four :class:`PixelParams` tensors, and where the pixels mix
+    the object with what lies behind them (``part.backdrop``) their coverage logits; returns them."""
     from matcap.refine.solve import levenberg_marquardt
+
+    theta, residuals, jacobian, unpack = _pixel_residuals(torch, part, start, s)
+    theta = levenberg_marquardt(lambda t, rows: residuals(t, rows, lights), theta, part.weight / 3.0, c, iters,
+                                on_step=on_step, tol=s.pixels.tol, jacobian=lambda t, rows: jacobian(t, rows, lights))
+    return unpack(theta)
+
+
+def _pixel_residuals(torch, part: _Problem, start, s):
+    """:func:`_loss` of the pixels ``part`` as residuals for Levenberg-Marquardt: the same data term (Cauchy,
+    clipped highlights a lower bound only, weighted per pixel and averaged over the colour channels) and the same
+    priors. ``start``: the four :class:`PixelParams` tensors, and where the pixels mix the object with what lies
+    behind them (``part.backdrop``) their coverage logits. Such a pixel's model is coverage x the Principled model
+    + (1 - coverage) x the backdrop, with a prior (``priors.cover``) on 1 - coverage.
+
+    Returns (theta (N, P): the parameters as one array; residuals(theta, rows, lights) -> (robust (n, K * 3),
+    entry k * 3 + c photo k's channel c; quadratic); jacobian(theta, rows, lights, state=False) -> those with
+    their derivatives (:func:`matcap.refine.solve.levenberg_marquardt`'s ``jacobian``), and with ``state`` a
+    fifth value, the model's pieces {"normal", "base", "metal" (n,), "pred" (K, n, 3), "free" (K, n, 3) 0 / 1,
+    "d_level" (n, Q): the priors' derivatives by ``level``}; unpack(theta) -> the tensors of ``start``). ``level``
+    (a scalar tensor, or None for 0): the log of a factor on the networks' base colour in its prior.)"""
+    from matcap.refine.model import PixelParams, shade_jacobian
 
     grad, base_logit, rough_logit, metal_logit = start[:4]
     n = len(part)
@@ -1834,8 +1918,9 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
         px = PixelParams(t[:, 0:2], t[:, 2:5], rl, ml)
         return sub, px, px.normal(), px.base(), px.rough() if brdf else sub.r0, px.metal() if brdf else sub.m0
 
-    def priors(sub, nrm, b, r, m, t):
-        prior = [roots[0] * (nrm - sub.n0), roots[1] * (torch.log(b + 0.02) - torch.log(sub.b0 + 0.02))]
+    def priors(sub, nrm, b, r, m, t, level=None):
+        b0 = sub.b0 if level is None else sub.b0 * level.exp()
+        prior = [roots[0] * (nrm - sub.n0), roots[1] * (torch.log(b + 0.02) - torch.log(b0 + 0.02))]
         if brdf:
             prior += [roots[2] * (r - sub.r0)[:, None], roots[3] * (m - sub.m0)[:, None]]
         if mixed:
@@ -1848,13 +1933,13 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
         a = torch.sigmoid(t[:, ci])[None, :, None]
         return a * pred + (1.0 - a) * sub.backdrop
 
-    def residuals(t, rows):
+    def residuals(t, rows, lights, level=None):
         sub, _, nrm, b, r, m = pixels(t, rows)
         res = mix(t, sub, _shade(lights, sub.pos, nrm, b, r, m)) - sub.obs
         res = res * _free(sub, res)
-        return res.permute(1, 0, 2).reshape(len(t), -1), priors(sub, nrm, b, r, m, t)
+        return res.permute(1, 0, 2).reshape(len(t), -1), priors(sub, nrm, b, r, m, t, level)
 
-    def jacobian(t, rows):
+    def jacobian(t, rows, lights, state=False, level=None):
         sub, px, nrm, b, r, m = pixels(t, rows)
         count = len(t)
         # the unit normal's derivatives by its gradient parameters: (e_x - n n_x) / |v|, (e_y - n n_y) / |v|
@@ -1874,7 +1959,7 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
         free = _free(sub, res).to(t.dtype)
         flat = lambda x: (x * free).permute(1, 0, 2).reshape(count, -1)  # noqa: E731
         robust = flat(res)
-        q = priors(sub, nrm, b, r, m, t)
+        q = priors(sub, nrm, b, r, m, t, level)
         q_width = q.shape[1]
         jr = [flat(d_n[0]), flat(d_n[1])]
         jq = [torch.cat([roots[0] * tangents[i], t.new_zeros(count, q_width - 3)], 1) for i in range(2)]
@@ -1897,16 +1982,22 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
             col = t.new_zeros(count, q_width)
             col[:, q_width - 1] = -roots[4] * a * (1.0 - a)
             jq.append(col)
+        if state:
+            b0 = sub.b0 if level is None else sub.b0 * level.exp()
+            d_level = t.new_zeros(count, q_width)  # the base prior's derivative by the log of its level
+            d_level[:, 3:6] = -roots[1] * b0 / (b0 + 0.02)
+            return robust, q, jr, jq, {"normal": nrm, "base": b, "metal": m, "pred": pred, "free": free,
+                                       "d_level": d_level}
         return robust, q, jr, jq
 
-    dev = theta.device
-    channel = torch.arange(3, device=dev)
-    theta = levenberg_marquardt(residuals, theta, part.weight / 3.0, c, iters, on_step=on_step, tol=s.pixels.tol,
-                                jacobian=jacobian)
-    out = [theta[:, 0:2], theta[:, 2:5]]
-    out += [theta[:, 5], theta[:, 6]] if brdf else [rough_logit, metal_logit]
-    out += [theta[:, ci]] if mixed else []
-    return [t.contiguous() for t in out]
+    def unpack(theta):
+        out = [theta[:, 0:2], theta[:, 2:5]]
+        out += [theta[:, 5], theta[:, 6]] if brdf else [rough_logit, metal_logit]
+        out += [theta[:, ci]] if mixed else []
+        return [t.contiguous() for t in out]
+
+    channel = torch.arange(3, device=theta.device)
+    return theta, residuals, jacobian, unpack
 
 
 def _free(sub: _Problem, res):

@@ -69,7 +69,7 @@ class PriorSettings:
 
 @dataclass
 class LightStageSettings:
-    """The light stage: Adam on the lights (and the maps of a pixel subsample) of a downsampled copy."""
+    """The light stage: the lights fitted with the maps of a pixel subsample of a downsampled copy."""
 
     side: int = 256
     """The light fit runs on a copy whose longer side is at most this many pixels."""
@@ -79,18 +79,25 @@ class LightStageSettings:
     """Pixels taking part where the directions are known (only the intensities and the ambient are fitted), drawn
     off the mask's outline (``pixels.outline``), whose mixed pixels the light fit does not model."""
     iters: int = 400
-    """Adam steps of the light fit (and of a near-lamp fit's distances)."""
+    """Adam steps of the light fit where the lights are estimated (and of a near-lamp fit's distances)."""
+    known_iters: int = 30
+    """Levenberg-Marquardt iterations at most of the light fit where the directions are known (the intensities,
+    the ambient and the subsample's maps solved together); 0: the least-squares intensities are kept."""
     kept_iters: int = 200
     """Adam steps of the light fit where the maps are kept (the lights are fitted to the networks' maps)."""
     lr: float = 0.02
     """Adam step size of the light parameters (directions, log intensities, ambient, inverse distances)."""
     lr_pixel: float = 0.05
     """Adam step size of the subsample's map parameters during the light fit."""
-    flat_tilt: float = 1000.0
-    """A flat sample whose given lights come without intensities: weight of the squared mean normal gradient (x and
-    y of ``n / n_z``) of the light fit's pixels in its loss. The sample's mean normal is the camera axis; without it
-    a photo's fitted intensity trades with a tilt of the whole sample toward or away from that photo's light. (Lamps
-    found from their falloff have every tilt wider than ``pixels.found_lamps_detail`` taken out instead.)"""
+    flat_level_free: bool = True
+    """A flat sample whose lights' relative intensities are known (a light file's with point lamps, or the lamps
+    found from their falloff): the base colour's prior holds the networks' pattern only, not its level (one factor
+    on it is solved with the lights), so that the photos set the lights' overall power."""
+    flat_mean_held: bool = True
+    """A flat sample whose given lights come without intensities: the light fit's pixels keep a mean normal
+    gradient (x and y of ``n / n_z``) of 0. The sample's mean normal is the camera axis; without it a photo's
+    fitted intensity trades with a tilt of the whole sample toward or away from that photo's light. (Lamps found
+    from their falloff have every tilt wider than ``pixels.found_lamps_detail`` taken out instead.)"""
 
 
 @dataclass

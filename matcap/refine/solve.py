@@ -14,19 +14,23 @@ still stops short of the minimum (tests/test_refine_solve.py).
 """
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import torch
 
 
 def cholesky_solve(h: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """Solve ``h x = g`` for every row: h (N, P, P) symmetric positive definite, g (N, P) -> x (N, P).
+    """Solve ``h x = g`` for every row: h (N, P, P) symmetric positive definite, g (N, P) -> x (N, P), or g
+    (N, P, R) (R right-hand sides) -> x (N, P, R).
 
     Elementwise over N (no batched LAPACK call), so the result is the same whatever the batch size or alignment.
     Pivots are clamped at 1e-12 (a semi-definite ``h`` gives a finite answer).
     """
-    if h.ndim != 3 or h.shape[1] != h.shape[2] or g.shape != h.shape[:2]:
-        raise ValueError(f"h must be (N, P, P) and g (N, P), got {tuple(h.shape)} and {tuple(g.shape)}")
+    if h.ndim != 3 or h.shape[1] != h.shape[2] or g.shape[:2] != h.shape[:2] or g.ndim not in (2, 3):
+        raise ValueError(f"h must be (N, P, P) and g (N, P) or (N, P, R), got {tuple(h.shape)} and {tuple(g.shape)}")
+    if g.ndim == 3:
+        h = h[..., None]  # each pivot broadcasts over the right-hand sides
     p = g.shape[1]
     low = [[None] * p for _ in range(p)]
     for j in range(p):
@@ -128,15 +132,7 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
             r, q, jr, jq = _forward_jacobian(residuals, th, active, groups, shared)
         r, q = r.detach(), q.detach()
         w = weight[active, None] * 2.0 / (c2 + r * r)  # IRLS weight: rho'(r) / r of weight * log(1 + r^2 / c^2)
-        wr = w * r
-        grad = torch.stack([(wr * jr[i]).sum(1) + 2.0 * (q * jq[i]).sum(1) for i in range(p)], 1)
-        hess = torch.empty((m, p, p), dtype=dt, device=dev)
-        for i in range(p):
-            wj = w * jr[i]
-            for j in range(i, p):
-                v = (wj * jr[j]).sum(1) + 2.0 * (jq[i] * jq[j]).sum(1)
-                hess[:, i, j] = v
-                hess[:, j, i] = v
+        grad, hess = _normal_equations(r, q, jr, jq, w)
         diag = torch.diagonal(hess, dim1=1, dim2=2).clone()
         lam_a = lam[active]
         hess[:, eye, eye] = diag * (1.0 + lam_a[:, None]) + 1e-6
@@ -166,6 +162,113 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
         if on_step is not None:
             on_step(float(loss.mean()))
     return theta
+
+
+def _normal_equations(r, q, jr, jq, w):
+    """(gradient (n, P), Gauss-Newton matrix (n, P, P)) of :func:`robust_loss` per problem: ``w`` (n, M) the IRLS
+    weights of the robust residuals ``r`` (n, M), ``q`` (n, Q) the quadratic ones, ``jr`` / ``jq`` their
+    derivatives by each of the P parameters."""
+    p = len(jr)
+    wr = w * r
+    grad = torch.stack([(wr * jr[i]).sum(1) + 2.0 * (q * jq[i]).sum(1) for i in range(p)], 1)
+    hess = torch.empty((r.shape[0], p, p), dtype=r.dtype, device=r.device)
+    for i in range(p):
+        wj = w * jr[i]
+        for j in range(i, p):
+            v = (wj * jr[j]).sum(1) + 2.0 * (jq[i] * jq[j]).sum(1)
+            hess[:, i, j] = v
+            hess[:, j, i] = v
+    return grad, hess
+
+
+#: Derivatives of residuals by shared parameters, sparse: (columns (E,) int64, values (N, E)): residual entry e of
+#: problem i depends on shared parameter ``columns[e]`` through ``values[i, e]``; a residual may appear in several.
+Slots = list[tuple[torch.Tensor, torch.Tensor]]
+JointJacobianFn = Callable[[torch.Tensor, torch.Tensor],
+                           tuple[torch.Tensor, torch.Tensor, list[torch.Tensor], list[torch.Tensor], Slots, Slots]]
+
+
+def joint_levenberg_marquardt(residuals: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
+                              jacobian: JointJacobianFn, theta: torch.Tensor, shared: torch.Tensor,
+                              weight: torch.Tensor, scale: float, iters: int, damping: float = 1e-2,
+                              tol: float = 1e-6, project: Callable[[torch.Tensor], torch.Tensor] | None = None,
+                              on_step: Callable[[float], None] | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Minimise the sum over N problems of :func:`robust_loss` where every problem has P parameters of its own
+    (``theta`` (N, P)) and all of them share S parameters (``shared`` (S,)): a light's intensity seen by every
+    pixel. Levenberg-Marquardt on the whole, its Gauss-Newton system solved through the Schur complement of the
+    per-problem blocks (block-diagonal, P x P each, solved elementwise by :func:`cholesky_solve`), so a step costs
+    about what N independent steps do plus an S x S solve; one damping for the whole (a step is kept where the
+    total loss went down: lambda / 3, else lambda * 4).
+
+    residuals: (theta (N, P), shared (S,)) -> (robust (N, M), quadratic (N, Q)); jacobian: the same arguments ->
+    (robust, quadratic, [d robust / d theta_j] * P, [d quadratic / d theta_j] * P, robust slots, quadratic slots),
+    the slots (:data:`Slots`) the derivatives by the shared parameters. weight (N,) and scale: of the robust part.
+    project: maps a trial theta onto a constraint before its loss is taken (None: none). Stops after ``iters``
+    iterations, or once two in a row lowered the loss by at most ``tol`` of it. Returns (theta, shared,
+    iterations done)."""
+    if theta.ndim != 2 or shared.ndim != 1:
+        raise ValueError(f"theta must be (N, P) and shared (S,), got {tuple(theta.shape)} and {tuple(shared.shape)}")
+    n, p = theta.shape
+    size = shared.shape[0]
+    theta, shared, weight = theta.detach().clone(), shared.detach().clone(), weight.detach()
+    if project is not None:
+        theta = project(theta)
+    dt, dev = theta.dtype, theta.device
+    c2 = scale * scale
+    eye = torch.arange(p, device=dev)
+    with torch.no_grad():
+        loss = float(robust_loss(*residuals(theta, shared), weight, scale).sum())
+    lam, stalls, done = damping, 0, 0
+    for _ in range(iters):
+        done += 1
+        r, q, jr, jq, slots, qslots = jacobian(theta, shared)
+        r, q = r.detach(), q.detach()
+        w = weight[:, None] * 2.0 / (c2 + r * r)
+        grad, hess = _normal_equations(r, q, jr, jq, w)
+        # the shared block: its gradient, its coupling to each problem's parameters, its own matrix
+        g_s = torch.zeros(size, dtype=dt, device=dev)
+        cross = torch.zeros((n, p, size), dtype=dt, device=dev)
+        h_s = torch.zeros((size, size), dtype=dt, device=dev)
+        terms = [(slots, w, r, jr, 1.0), (qslots, None, q, jq, 2.0)]
+        for sl, wt, res, jac, f in terms:
+            for cols, vals in sl:
+                wv = f * vals if wt is None else wt * vals
+                g_s.index_add_(0, cols, (wv * res).sum(0))
+                for i in range(p):
+                    cross[:, i].index_add_(1, cols, wv * jac[i])
+                for cols_b, vals_b in sl:  # every slot of a kind covers the same residual entries
+                    h_s.index_put_((cols, cols_b), (wv * vals_b).sum(0), accumulate=True)
+        diag = torch.diagonal(hess, dim1=1, dim2=2).clone()
+        diag_s = torch.diagonal(h_s).clone()
+        while True:
+            a = hess.clone()
+            a[:, eye, eye] = diag * (1.0 + lam) + 1e-6
+            c = h_s.clone()
+            c[range(size), range(size)] = diag_s * (1.0 + lam) + 1e-6
+            x = cholesky_solve(a, torch.cat([cross, grad[..., None]], 2))  # (N, P, S + 1)
+            schur = c - torch.einsum("npa,npb->ab", cross, x[..., :size])
+            rhs = g_s - torch.einsum("npa,np->a", cross, x[..., size])
+            d_s = torch.linalg.solve(schur.double(), rhs.double()).to(dt)
+            d_t = x[..., size] - (x[..., :size] * d_s).sum(-1)
+            trial, trial_s = theta - d_t, shared - d_s
+            if project is not None:
+                trial = project(trial)
+            with torch.no_grad():
+                trial_loss = float(robust_loss(*residuals(trial, trial_s), weight, scale).sum())
+            if math.isfinite(trial_loss) and trial_loss < loss:
+                gain = loss - trial_loss
+                theta, shared, loss, lam = trial, trial_s, trial_loss, max(lam / 3.0, 1e-6)
+                break
+            lam = lam * 4.0
+            if lam > 1e6:
+                gain = 0.0
+                break
+        stalls = stalls + 1 if gain <= tol * loss else 0
+        if on_step is not None:
+            on_step(loss / n)
+        if stalls >= 2 or lam > 1e6:
+            break
+    return theta, shared, done
 
 
 def _forward_jacobian(residuals: ResidualFn, th: torch.Tensor, rows: torch.Tensor, groups: list[list[int]],
