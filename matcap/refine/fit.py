@@ -1079,7 +1079,7 @@ def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, rela
     px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
     theta, residuals, jacobian, _ = _pixel_residuals(torch, prob, px.tensors(), s)
     k_count = prob.obs.shape[0]
-    dev, dt = theta.device, theta.dtype
+    dev = theta.device
     ambient = ambient_free and s.model.ambient != "none"
     n_sh = lights.sh.shape[0]
     entry = torch.arange(k_count * 3, device=dev)  # a residual entry k * 3 + c: photo k, channel c
