@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 
+from matcap.errors import MatcapError
 from matcap.evaluation.metrics import angular_error_map
 from matcap.lightfiles import KnownLights, read_light_file
 from matcap.refine import RefineSettings, refine
@@ -279,3 +280,12 @@ def test_a_constant_roughness_keeps_the_metallic_vote(glossy):
     m = truth.mask
     assert np.abs(res.maps.roughness[m] - 0.3).max() < 0.005  # held by its prior (the output sets it exactly)
     assert np.sqrt(np.mean(res.maps.metallic[m] ** 2)) < 0.05
+
+
+def test_known_ambient_order_out_of_range_is_one_line():
+    truth = S.sphere_maps(24)
+    lights = S.known_lights(6)
+    photos = S.render_capture(truth, lights)
+    s = RefineSettings(seed=0).replace({"lights.known_ambient_order": 3})
+    with pytest.raises(MatcapError, match=r"'lights.known_ambient_order' takes 0, 1 or 2, not 3"):
+        refine(photos, truth, s, lights=_known(lights))

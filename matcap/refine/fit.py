@@ -1064,8 +1064,8 @@ def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, rela
                      mean_held: bool = False, level_free: bool = False, ambient_free: bool = True):
     """Lights whose directions (and a near lamp's distance) are known: their log intensities (K, 3) (with
     ``relative_to`` (K, 3) log intensities, only one overall log scale, the colours and ratios held) and the
-    ambient's constant term (``lights.sh[:, 0]``, with ``ambient_free`` and unless ``model.ambient`` is "none";
-    its higher orders held), fitted with the maps of the pixels ``prob``
+    ambient's orders up to ``lights.known_ambient_order`` (with ``ambient_free`` and unless ``model.ambient`` is
+    "none"; its higher orders held), fitted with the maps of the pixels ``prob``
     (anchored by the prior) under the loss of :func:`_loss`: Levenberg-Marquardt on the whole
     (:func:`matcap.refine.solve.joint_levenberg_marquardt`; the intensities and the ambient are parameters every
     pixel shares, each pixel's maps its own), ``lights.known_iters`` iterations at most. ``mean_held``: the pixels'
@@ -1073,7 +1073,7 @@ def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, rela
     colour's prior holds its pattern only, one factor on the networks' base colour solved with the rest (the
     photos then set the lights' overall power). Returns (lights, a copy without gradients; that factor (1 where
     not free); iterations done)."""
-    from matcap.refine.model import SH_A, SH_C0, PixelParams, sh_irradiance
+    from matcap.refine.model import SH_A, PixelParams, sh_basis, sh_irradiance
     from matcap.refine.solve import joint_levenberg_marquardt
 
     px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
@@ -1089,21 +1089,25 @@ def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, rela
     else:
         start, cols_i = (lights.log_intensity - relative_to).mean().reshape(1), torch.zeros_like(entry)
     n_i = start.shape[0]
-    # the ambient's constant term (order 0) alone moves: its higher orders would bend to fit what the model misses
-    # (a cast shadow, an interreflection) rather than a room's light
-    shared = torch.cat([start, lights.sh[:, 0].reshape(-1)]) if ambient else start
+    # the ambient's low orders alone move (lights.known_ambient_order): its order 2 would bend to fit what the model
+    # misses (a cast shadow, an interreflection) rather than a room's light
+    order = s.lights.known_ambient_order
+    if order not in (0, 1, 2):
+        raise MatcapError(f"fit setting 'lights.known_ambient_order' takes 0, 1 or 2, not {order}")
+    terms = (1, 4, 9)[order]
+    shared = torch.cat([start, lights.sh[:, :terms].reshape(-1)]) if ambient else start
     if level_free:  # its last entry: the log of the factor on the networks' base colour
         shared = torch.cat([shared, shared.new_zeros(1)])
     n_light = shared.shape[0] - int(level_free)
     col_level = torch.tensor([n_light], device=dev)
     sh_photo = photo if n_sh > 1 else torch.zeros_like(photo)
-    cols_sh = n_i + sh_photo * 3 + channel
+    cols_sh = [n_i + (sh_photo * terms + j) * 3 + channel for j in range(terms)]
 
     every = torch.arange(len(prob), device=dev)
 
     def lights_of(v):
         log_i = v[:n_i].reshape(k_count, 3) if relative_to is None else relative_to + v[0]
-        sh = torch.cat([v[n_i:n_light].reshape(n_sh, 1, 3), lights.sh[:, 1:]], 1) if ambient else lights.sh
+        sh = torch.cat([v[n_i:n_light].reshape(n_sh, terms, 3), lights.sh[:, terms:]], 1) if ambient else lights.sh
         return replace(lights, log_intensity=log_i, sh=sh)
 
     def level_of(v):
@@ -1118,8 +1122,10 @@ def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, rela
         albedo = ((1.0 - st["metal"])[:, None] * st["base"] / math.pi)[None]  # (1, N, 3)
         ambient_part = sh_irradiance(st["normal"], hl.sh) * albedo
         slots = [(cols_i, flat((st["pred"] - ambient_part) * st["free"]))]  # d pred / d log intensity: the direct part
-        if ambient:  # d pred / d sh_0: the albedo times A_0 Y_0
-            slots.append((cols_sh, flat(st["free"] * albedo * (SH_A[0] * SH_C0))))
+        if ambient:  # d pred / d sh_j: the albedo times A_j Y_j(n)
+            basis = sh_basis(st["normal"])
+            slots += [(cols_sh[j], flat(st["free"] * albedo * (SH_A[j] * basis[:, j])[None, :, None]))
+                      for j in range(terms)]
         qslots = [(col_level.expand(q.shape[1]), st["d_level"])] if level_free else []
         return robust, q, jr, jq, slots, qslots
 

@@ -89,10 +89,14 @@ class LightStageSettings:
     """Adam step size of the light parameters (directions, log intensities, ambient, inverse distances)."""
     lr_pixel: float = 0.05
     """Adam step size of the subsample's map parameters during the light fit."""
+    known_ambient_order: int = 1
+    """The highest order of the SH ambient fitted there: 0 its constant term alone, 1 also the linear terms (a room's
+    light seen by a glossy surface changes with the normal), 2 all (they bend to fit cast shadows and
+    interreflections); the higher orders stay as given (a lights.json's ``sh``) or 0."""
     flat_level_free: bool = True
-    """A flat sample whose lights' relative intensities are known (a light file's with point lamps, or the lamps
-    found from their falloff): the base colour's prior holds the networks' pattern only, not its level (one factor
-    on it is solved with the lights), so that the photos set the lights' overall power."""
+    """A flat sample whose lamps' relative intensities are known (a light file's point lamps with intensities): the
+    base colour's prior holds the networks' pattern only, not its level (one factor on it is solved with the
+    lights), so that the photos set the lights' overall power."""
     flat_mean_held: bool = True
     """A flat sample whose given lights come without intensities: the light fit's pixels keep a mean normal
     gradient (x and y of ``n / n_z``) of 0. The sample's mean normal is the camera axis; without it a photo's
