@@ -529,15 +529,17 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     """The fit with lights the user knows (:class:`matcap.lightfiles.KnownLights`, one per photo).
 
     Stages: (1) lights: the given directions (and point-light positions) are held; the per-photo intensities (or,
-    where the file gives relative intensities, one overall scale, their colours held) and one ambient shared by
-    every photo are fitted, first by least squares, then jointly with a subsample's maps under the Principled model
-    (:func:`_fit_intensities`; on a flat sample whose given lights come without intensities, with the subsample's
-    mean normal held to the camera axis, ``lights.flat_mean_held``). Distant lights whose intensities the file gives are
-    taken as they are, at the least-squares scale, with the file's ambient (a ``lights.json``'s ``sh``; else none)
-    at that scale; the start normals come from semi-calibrated Lambertian least squares (:func:`known_irradiance`);
-    (2) the per-pixel solve (:func:`_solve_maps`) from calibrated photometric-stereo normals, then the roughness
-    stage (:func:`_roughness_stage`); (3) outputs. With the lights known there is no bas-relief family to choose
-    from, so nothing is gated: the maps are always the fitted ones. ``flat``: what
+    where the file gives relative intensities, one overall scale, their colours held) and the low orders of one
+    ambient shared by every photo are fitted, first by least squares, then jointly with a subsample's maps under
+    the Principled model (:func:`_fit_intensities`). On a flat sample whose given lights come without intensities
+    the subsample's mean normal is held to the camera axis (``lights.flat_mean_held``) and the ambient as given; on
+    one under point lamps with relative intensities the photos set their overall power, one factor on the
+    networks' base colour solved with them (``lights.flat_level_free``). Distant lights whose intensities the file
+    gives are taken as they are, at the least-squares scale, with the file's ambient (a ``lights.json``'s ``sh``;
+    else none) at that scale; the start normals come from semi-calibrated Lambertian least squares
+    (:func:`known_irradiance`); (2) the per-pixel solve (:func:`_solve_maps`) from calibrated photometric-stereo
+    normals, then the roughness stage (:func:`_roughness_stage`); (3) outputs. With the lights known there is no
+    bas-relief family to choose from, so nothing is gated: the maps are always the fitted ones. ``flat``: what
     :func:`matcap.refine.flat.flat_lights` found (empty where the lights were given), recorded in fit.json as
     ``flat``.
     """
@@ -624,7 +626,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         lights, level, light_iters = _fit_intensities(torch, prob, lights, s, bar, relative_to=given_log,
                                                       mean_held=tilt_held, level_free=level_free,
                                                       ambient_free=ambient_free)
-        if level != 1.0:  # the per-pixel solve's prior: the networks' base colour at the level the photos set
+        if level_free:  # the per-pixel solve's prior: the networks' base colour at the level the photos set
             arrays = dict(arrays, base=np.clip(arrays["base"] * level, 0.0, 1.0).astype(np.float32))
     timings["lights_s"] = time.perf_counter() - t0
 
@@ -1924,8 +1926,11 @@ def _pixel_residuals(torch, part: _Problem, start, s):
         px = PixelParams(t[:, 0:2], t[:, 2:5], rl, ml)
         return sub, px, px.normal(), px.base(), px.rough() if brdf else sub.r0, px.metal() if brdf else sub.m0
 
+    def prior_base(sub, level):  # the base colour the prior holds: the networks', times exp(level) where given
+        return sub.b0 if level is None else sub.b0 * level.exp()
+
     def priors(sub, nrm, b, r, m, t, level=None):
-        b0 = sub.b0 if level is None else sub.b0 * level.exp()
+        b0 = prior_base(sub, level)
         prior = [roots[0] * (nrm - sub.n0), roots[1] * (torch.log(b + 0.02) - torch.log(b0 + 0.02))]
         if brdf:
             prior += [roots[2] * (r - sub.r0)[:, None], roots[3] * (m - sub.m0)[:, None]]
@@ -1989,7 +1994,7 @@ def _pixel_residuals(torch, part: _Problem, start, s):
             col[:, q_width - 1] = -roots[4] * a * (1.0 - a)
             jq.append(col)
         if state:
-            b0 = sub.b0 if level is None else sub.b0 * level.exp()
+            b0 = prior_base(sub, level)
             d_level = t.new_zeros(count, q_width)  # the base prior's derivative by the log of its level
             d_level[:, 3:6] = -roots[1] * b0 / (b0 + 0.02)
             return robust, q, jr, jq, {"normal": nrm, "base": b, "metal": m, "pred": pred, "free": free,
