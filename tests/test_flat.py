@@ -231,16 +231,27 @@ def test_flat_with_too_few_photos_is_one_line(tmp_path):
     assert r.returncode == 2 and "--no-refine" in r.stderr and r.stderr.count("\n") == 1, r.stderr
 
 
-def test_flat_sample_under_distant_lamps_keeps_the_networks_maps():
+def test_flat_sample_under_distant_lamps_keeps_the_networks_maps_with_the_planes_normals():
+    """Distant lamps, no lights given: the networks' base colour, roughness and metallic are kept, the normals are
+    the camera axis: nearer the truth than networks' normals that bend with the light (as ours do on swatches)."""
     from matcap.refine import RefineSettings, refine
 
     n, albedo = _swatch()
     lamps = _lamps(10, (1.0, 3.0))
-    start = _maps(np.dstack([np.zeros_like(n[..., :2]), np.ones_like(n[..., :1])]), np.full_like(albedo, 0.5), 0.5)
+    rng = np.random.default_rng(3)
+    bent = n + np.concatenate([rng.normal(0.0, 0.15, n.shape[:2] + (2,)), np.zeros(n.shape[:2] + (1,))], -1)
+    bent = (bent / np.linalg.norm(bent, axis=-1, keepdims=True)).astype(np.float32)
+    start = _maps(bent, np.full_like(albedo, 0.5), 0.5)
     result = refine(_photos(n, albedo, lamps, distant=True), start, RefineSettings(), flat=True)
     assert result.report["flat"]["lamps"] == "distant" and result.report["kept_network_maps"]
-    assert np.array_equal(result.maps.normal, start.normal)
+    assert np.array_equal(result.maps.normal[..., 2], np.ones(n.shape[:2], np.float32))
+    assert not result.maps.normal[..., :2].any()
+    assert np.array_equal(result.maps.base_color, start.base_color)
+    assert np.array_equal(result.maps.roughness, start.roughness)
+    before, after = _angle(bent, n).mean(), _angle(result.maps.normal, n).mean()
+    assert after < 0.5 * before, (before, after)
     assert result.report["linear"]["reason"].startswith("a flat sample under distant lamps")
+    assert result.report["linear"]["reason"].endswith("its normal map is the plane's (the camera axis)")
     assert result.report["settings"]["checks"]["spread"] == RefineSettings().checks.spread  # the settings as given
 
 

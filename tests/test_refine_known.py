@@ -282,6 +282,34 @@ def test_a_constant_roughness_keeps_the_metallic_vote(glossy):
     assert np.sqrt(np.mean(res.maps.metallic[m] ** 2)) < 0.05
 
 
+def test_neighbour_median_is_numpys_nanmedian_of_the_neighbours():
+    """Each channel's median over the pixel's neighbours on the mask (an even count: the mean of the middle two),
+    as numpy's nanmedian gives it, on a random mask with holes and lone pixels."""
+    import warnings
+
+    from matcap.refine.fit import neighbour_median
+
+    rng = np.random.default_rng(0)
+    hw = (40, 30)
+    rows, cols = np.nonzero(rng.random(hw) < 0.45)
+    n = rng.normal(size=(len(rows), 3)).astype(np.float32)
+    n[:, 2] = np.abs(n[:, 2])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    img = np.full((hw[0] + 2, hw[1] + 2, 3), np.nan, np.float32)
+    img[rows + 1, cols + 1] = n
+    around = np.stack([img[rows + dy, cols + dx] for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        expected = np.nanmedian(around, axis=0)
+    expected[:, 2] = np.maximum(expected[:, 2], 0.08)
+    expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+    got = neighbour_median(n, rows, cols, hw)
+    lone = ~np.isfinite(around[:, :, 0]).any(0)
+    assert lone.any() and (~lone).sum() > 400
+    assert np.isnan(got[lone]).all()
+    np.testing.assert_allclose(got[~lone], expected[~lone], rtol=0, atol=1e-7)
+
+
 def test_known_ambient_order_out_of_range_is_one_line():
     truth = S.sphere_maps(24)
     lights = S.known_lights(6)

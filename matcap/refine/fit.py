@@ -495,7 +495,9 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     ``flat``: the photos show a flat sample facing the camera: without ``lights``, its lamps are found from the
     falloff of their light over the plane (:func:`matcap.refine.flat.flat_lights`) and held like known ones; where
     the falloff does not place them (distant lamps), the networks' maps are kept (the photos of a plane under
-    distant lights cannot tell the lights apart) and the lights fitted to them.
+    distant lights cannot tell the lights apart) and the lights fitted to them, but for the normals: every one is
+    the camera axis (the plane's own; on rendered flat samples the networks' normals came out further from the
+    truth than that, on every one).
     """
     import torch
 
@@ -511,8 +513,10 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
             from matcap.refine.flat import flat_lights
 
             lights, found = flat_lights(images, maps.mask)
-            if lights is None:  # distant lamps: the networks' maps are kept (the lights fitted to them)
-                result = _refine_estimated(torch, images, maps, s, progress, keep=FLAT_DISTANT)
+            if lights is None:  # distant lamps: the networks' maps are kept (the lights fitted to them), but for
+                # their normals, which are the plane's own (the camera axis)
+                plane = replace(maps, normal=np.where(maps.mask[..., None], _plane_normals(maps.mask), 0.0))
+                result = _refine_estimated(torch, images, plane, s, progress, keep=FLAT_DISTANT)
                 result.report["flat"] = found
                 return result
             return _refine_known(torch, images, maps, s, progress, lights, flat=found)
@@ -764,15 +768,17 @@ def neighbour_median(normal: np.ndarray, rows: np.ndarray, cols: np.ndarray, hw:
     """(N, 3) unit: the component-wise median of the normals of each pixel's eight neighbours among the N pixels
     (``normal`` (N, 3) unit at ``rows``, ``cols`` (N,) of an ``hw`` frame), renormalised and kept facing the camera
     (z at least 0.08); NaN where a pixel has no neighbour."""
-    import warnings
-
     h, w = hw
     img = np.full((h + 2, w + 2, 3), np.nan, np.float32)
     img[rows + 1, cols + 1] = normal
-    around = np.stack([img[rows + dy, cols + dx] for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # a pixel without neighbours: all-NaN
-        med = np.nanmedian(around, axis=0)
+    around = np.sort(np.stack([img[rows + dy, cols + dx] for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)]),
+                     axis=0)  # NaN (no neighbour there) sorts last
+    count = np.isfinite(around[:, :, 0]).sum(0)  # (N,) neighbours
+    lo = np.maximum((count - 1) // 2, 0)[None, :, None]
+    hi = np.maximum(count // 2, 0)[None, :, None].clip(max=7)
+    med = 0.5 * (np.take_along_axis(around, np.broadcast_to(lo, (1,) + around.shape[1:]), 0)[0]
+                 + np.take_along_axis(around, np.broadcast_to(hi, (1,) + around.shape[1:]), 0)[0])
+    med[count == 0] = np.nan
     med[:, 2] = np.maximum(med[:, 2], 0.08)
     return med / np.maximum(np.linalg.norm(med, axis=1, keepdims=True), 1e-9)
 
@@ -1391,7 +1397,7 @@ def _object_radius(mask: np.ndarray) -> float:
 
 #: Why a flat sample under distant lamps keeps the networks' maps (fit.json ``linear`` ``reason``).
 FLAT_DISTANT = ("a flat sample under distant lamps: its photos, of one plane, cannot tell the lights apart (the "
-                "lamps' falloff over it did not place them)")
+                "lamps' falloff over it did not place them), so its normal map is the plane's (the camera axis)")
 
 
 def _refine_estimated(torch, images, maps: MaterialMaps, s: RefineSettings, progress,
