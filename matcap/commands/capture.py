@@ -129,6 +129,8 @@ def fit_notes(result, settings) -> list[str]:
         if lin.get("lambertian_only") and settings.model.light != "point":
             listed = candidate_models(settings)
             tips = [tip for model, tip in CANDIDATE_TIPS.items() if model not in listed]
+        if (result.report.get("flat") or {}).get("lamps") == "distant":
+            tips.append("or shoot it under a lamp 1-3 sample widths away, whose falloff places it")
         hint = f" ({'; '.join(tips)})" if tips else ""
         lines.append(f"note: the fit kept the networks' maps: {lin.get('reason')}. Lights you know make the fit "
                      f"well-posed: give them with --lights FILE (a table of their directions will do), or put a mirror "
