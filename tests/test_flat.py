@@ -231,6 +231,36 @@ def test_flat_with_too_few_photos_is_one_line(tmp_path):
     assert r.returncode == 2 and "--no-refine" in r.stderr and r.stderr.count("\n") == 1, r.stderr
 
 
+def test_lamp_fits_jacobian_is_forward_mode_autodiff():
+    """The near-light photometric stereo's Jacobian in closed form (the lamps move each pixel's albedo times normal
+    through its least-squares solve) equals torch's forward-mode derivative, near and distant lamps alike."""
+    import torch
+
+    from matcap.refine.flat import _varpro_model
+
+    g = torch.Generator().manual_seed(0)
+    k, p = 6, 50
+    pos = torch.rand(p, 2, generator=g, dtype=torch.float64) * 2 - 1
+
+    def vectors(lamp, distant):
+        xy = lamp[:, None, :2] - (0.0 if distant else pos[None])
+        q = torch.cat([xy.expand(-1, p, 2), lamp[:, 2].exp()[:, None, None].expand(-1, p, 1)], -1)
+        return q, (q * q).sum(-1)
+
+    y = torch.rand(k, p, generator=g, dtype=torch.float64) + 0.2
+    w = (torch.rand(k, p, generator=g, dtype=torch.float64) > 0.1).double() * torch.rand(k, p, generator=g,
+                                                                                         dtype=torch.float64)
+    theta = torch.cat([torch.randn(k, 2, generator=g, dtype=torch.float64),
+                       torch.rand(k, 1, generator=g, dtype=torch.float64) + 0.5,
+                       0.3 * torch.randn(k, 1, generator=g, dtype=torch.float64),
+                       torch.full((k, 1), -3.0, dtype=torch.float64)], 1).reshape(-1)
+    for distant in (False, True):
+        residual, jacobian, _ = _varpro_model(torch, lambda t: vectors(t, distant), y, k)
+        auto = torch.func.jacfwd(lambda t: residual(t, w))(theta)
+        assert auto.shape == (k * p, k * 5) and auto.abs().max() > 1.0
+        torch.testing.assert_close(jacobian(theta, w), auto, rtol=1e-9, atol=1e-10)
+
+
 def test_flat_sample_under_distant_lamps_keeps_the_networks_maps_with_the_planes_normals():
     """Distant lamps, no lights given: the networks' base colour, roughness and metallic are kept, the normals are
     the camera axis: nearer the truth than networks' normals that bend with the light (as ours do on swatches)."""

@@ -174,32 +174,67 @@ def _lamp_lm(torch, theta, fn, y, w, cauchy: float, steps: int):
     return theta
 
 
+def _varpro_model(torch, vectors, y_lin, k_count: int):
+    """The residuals of :func:`_varpro` and their Jacobian in closed form: (residual(theta (K * 5,), weight (K, P))
+    -> (K * P,), jacobian(theta, weight) -> (K * P, K * 5), lights_b(theta, weight) -> (light vectors (K, P, 3),
+    b (P, 3), the normal matrices (P, 3, 3))); y_lin (K, P) the observations."""
+    ez = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+
+    def light_of(t):  # (K, 5) -> light vectors (K, P, 3)
+        q, r2 = vectors(t)
+        return t[:, 3].exp()[:, None, None] * q / r2[..., None] ** 1.5 + t[:, 4].exp()[:, None, None] * ez
+
+    def lights_b(theta, weight):
+        light = light_of(theta.reshape(k_count, 5))
+        wl = weight / y_lin ** 2
+        a = torch.einsum("kp,kpi,kpj->pij", wl, light, light)
+        r = torch.einsum("kp,kp,kpi->pi", wl, y_lin, light)
+        tr = torch.diagonal(a, dim1=1, dim2=2).sum(-1)[:, None, None]
+        a = a + torch.eye(3, dtype=a.dtype) * (1e-9 * tr + 1e-30)
+        return light, torch.linalg.solve(a, r[..., None])[..., 0], a
+
+    def residual(theta, weight):
+        light, b, _ = lights_b(theta, weight)
+        pred = torch.einsum("kpi,pi->kp", light, b)
+        return (weight.sqrt() * (y_lin - pred) / y_lin).reshape(-1)
+
+    one_lamp = torch.func.vmap(torch.func.jacfwd(lambda t: light_of(t[None])[0]))  # (K, 5) -> (K, P, 3, 5)
+
+    def jacobian(theta, weight):
+        # r_kp = s_kp (y_kp - L_kp . b_p) / y_kp; lamp m moves L_mp itself and b_p through A_p b_p = R_p:
+        # db_p / dtheta_mc = A_p^-1 wl_mp (e_mp dL_mp,c - L_mp (dL_mp,c . b_p) - 2e-9 (dL_mp,c . L_mp) b_p),
+        # e = y - L . b
+        light, b, a = lights_b(theta, weight)
+        d_light = one_lamp(theta.reshape(k_count, 5))  # (K, P, 3, 5)
+        wl = weight / y_lin ** 2
+        e = y_lin - torch.einsum("kpi,pi->kp", light, b)
+        dlb = torch.einsum("kpic,pi->kpc", d_light, b)  # dL_kp,c . b_p
+        g = wl[..., None, None] * (e[..., None, None] * d_light - light[..., None] * dlb[:, :, None, :])
+        # the regularisation 1e-9 tr(A) moves with the lamps too
+        dll = 2e-9 * wl[..., None] * torch.einsum("kpic,kpi->kpc", d_light, light)  # (K, P, 5)
+        g = g - dll[:, :, None, :] * b[None, :, :, None]
+        db = torch.einsum("pij,mpjc->mpci", torch.linalg.inv(a), g)  # (M, P, 5, 3)
+        total = torch.einsum("kpj,mpcj->kpmc", light, db)  # (K, P, M, 5): through b
+        idx = torch.arange(k_count)
+        total[idx, :, idx, :] += dlb  # and directly, photo k by its own lamp
+        scale = -(weight.sqrt() / y_lin)[..., None, None]
+        return (scale * total).reshape(k_count * y_lin.shape[1], k_count * 5)
+
+    return residual, jacobian, lights_b
+
+
 def _varpro(torch, lamp, vectors, y_np, w_np, cauchy: float, steps: int):
     """Levenberg-Marquardt on the lamps (K, 5: x, y, log height, log intensity, log room light) with every pixel's
     albedo times normal ``b`` (3,) solved by weighted least squares for them at each evaluation (variable
     projection): photo k at pixel x is ``b(x) . (I_k (p_k - x) / |p_k - x|^3 + A_k z)``. ``vectors(lamp)`` gives
     (p_k - x (K, P, 3), |p_k - x|^2 (K, P)); y_np / w_np (K, P) log luminance and its weights; relative residuals
-    under a Cauchy loss of scale ``cauchy``. Returns (lamps, median absolute relative residual (highlights and
-    shadows, which no lamp explains, do not move it), b (P, 3) for them)."""
+    under a Cauchy loss of scale ``cauchy``; the Jacobian in closed form (:func:`_varpro_model`). Returns (lamps,
+    median absolute relative residual (highlights and shadows, which no lamp explains, do not move it), b (P, 3)
+    for them)."""
     k_count = lamp.shape[0]
     y_lin = torch.from_numpy(np.exp(y_np))
     w_obs = torch.from_numpy(w_np)
-    ez = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-
-    def lights_b(theta, weight):  # (K * 5,) -> light vectors (K, P, 3), b (P, 3)
-        t = theta.reshape(k_count, 5)
-        q, r2 = vectors(t)
-        light = t[:, 3].exp()[:, None, None] * q / r2[..., None] ** 1.5 + t[:, 4].exp()[:, None, None] * ez
-        wl = weight / y_lin ** 2
-        a = torch.einsum("kp,kpi,kpj->pij", wl, light, light)
-        r = torch.einsum("kp,kp,kpi->pi", wl, y_lin, light)
-        tr = torch.diagonal(a, dim1=1, dim2=2).sum(-1)[:, None, None]
-        return light, torch.linalg.solve(a + torch.eye(3, dtype=a.dtype) * (1e-9 * tr + 1e-30), r[..., None])[..., 0]
-
-    def residual(theta, weight):  # (K * 5,) -> (K * P,)
-        light, b = lights_b(theta, weight)
-        pred = torch.einsum("kpi,pi->kp", light, b)
-        return (weight.sqrt() * (y_lin - pred) / y_lin).reshape(-1)
+    residual, jacobian, lights_b = _varpro_model(torch, vectors, y_lin, k_count)
 
     def solve_b(theta):
         e = residual(theta, w_obs).reshape(k_count, -1)
@@ -211,7 +246,7 @@ def _varpro(torch, lamp, vectors, y_np, w_np, cauchy: float, steps: int):
         e = residual(theta, w_obs).reshape(k_count, -1)
         irls = w_obs / (1.0 + (e / w_obs.sqrt().clamp(min=1e-9) / cauchy) ** 2)
         r = residual(theta, irls)
-        jac = torch.func.jacfwd(lambda t: residual(t, irls))(theta)
+        jac = jacobian(theta, irls)
         jtj, jtr = jac.T @ jac, jac.T @ r
         cost = float(r @ r)
         while lam < 1e9:
