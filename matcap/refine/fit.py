@@ -773,11 +773,9 @@ def neighbour_median(normal: np.ndarray, rows: np.ndarray, cols: np.ndarray, hw:
     img[rows + 1, cols + 1] = normal
     around = np.sort(np.stack([img[rows + dy, cols + dx] for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)]),
                      axis=0)  # NaN (no neighbour there) sorts last
-    count = np.isfinite(around[:, :, 0]).sum(0)  # (N,) neighbours
-    lo = np.maximum((count - 1) // 2, 0)[None, :, None]
-    hi = np.maximum(count // 2, 0)[None, :, None].clip(max=7)
-    med = 0.5 * (np.take_along_axis(around, np.broadcast_to(lo, (1,) + around.shape[1:]), 0)[0]
-                 + np.take_along_axis(around, np.broadcast_to(hi, (1,) + around.shape[1:]), 0)[0])
+    count = np.isfinite(around[:, :, 0]).sum(0)  # (N,) neighbours; the median: the middle one or two of them
+    lo, hi = (np.maximum(count - 1, 0) // 2)[None, :, None], (count // 2)[None, :, None]
+    med = 0.5 * (np.take_along_axis(around, lo, 0)[0] + np.take_along_axis(around, hi, 0)[0])
     med[count == 0] = np.nan
     med[:, 2] = np.maximum(med[:, 2], 0.08)
     return med / np.maximum(np.linalg.norm(med, axis=1, keepdims=True), 1e-9)
