@@ -57,6 +57,82 @@ def test_no_decided_pixel_keeps_the_fitted_roughness():
     assert not choice.decided.any()
 
 
+def _valleys(n_px: int, narrow: float, broad: float, depth: float = 30.0) -> np.ndarray:
+    """(G, n_px) costs of pixels whose photos show no highlight: two valleys, lowest at ``narrow`` (cost 1) and at
+    ``broad`` (cost 0), rising by ``depth`` per unit of log roughness away from each."""
+    lg = np.log(np.asarray(GRID))
+    c = np.minimum(depth * np.abs(lg - np.log(narrow)) + 1.0, depth * np.abs(lg - np.log(broad)))
+    return np.repeat(c[:, None], n_px, axis=1).astype(np.float32)
+
+
+def test_a_rarely_decided_roughness_counts_for_the_pixels_that_did_not_decide_it():
+    """One glaze: 10 pixels saw a lamp's reflection and decided 0.04, 30 at a boundary decided 0.2, 100 saw none.
+    Counted alike, the 0.2s set the target and the undecided pixels take a broad lobe; weighed by how rarely each
+    value is decided (0.04 on 3% of the pixels, 0.2 on 30%), the target is the glaze's."""
+    s = RoughnessSettings(min_decided=5)
+    costs = np.concatenate([_costs(10, [0.04]), _costs(30, [0.2]), _valleys(100, 0.04, 0.66)], axis=1)
+    base = np.full((140, 3), 0.6)
+    rates = np.full(len(GRID), 0.3)
+    rates[GRID.index(0.04)] = 0.03
+    equal = choose_roughness(costs, base, np.full(140, 0.5), s, seed=0)
+    weighed = choose_roughness(costs, base, np.full(140, 0.5), s, seed=0, rates=rates)
+    assert abs(equal.targets[0] - 0.2) < 0.01 and np.all(equal.rough[40:] >= 0.58), equal.targets
+    assert abs(weighed.targets[0] - 0.04) < 0.005, weighed.targets
+    np.testing.assert_allclose(weighed.rough[40:], 0.04, rtol=1e-5)
+    np.testing.assert_allclose(weighed.rough[:10], 0.04, rtol=0.05)  # decided pixels keep their own
+
+
+def test_an_undecided_pixel_settles_at_the_bottom_of_the_valley_the_target_picks():
+    """Target 0.5 (its decided pixels); undecided pixels whose broad valley is lowest at 0.85 end at 0.85, not at
+    the allowed value nearest the target."""
+    s = RoughnessSettings(min_decided=5, tolerance=8.0)
+    costs = np.concatenate([_costs(20, [0.5]), _valleys(30, 0.04, 0.85, depth=12.0)], axis=1)
+    choice = choose_roughness(costs, np.full((50, 3), 0.4), np.full(50, 0.3), s, seed=0)
+    assert abs(choice.targets[0] - 0.5) < 0.01
+    np.testing.assert_allclose(choice.rough[20:], 0.85, rtol=1e-5)
+
+
+def test_decided_pixels_the_model_does_not_explain_set_no_target():
+    """20 pixels decided at 0.1 but with a lowest cost of 40 over 48 observations (not explained) and 20 decided at
+    0.43 with cost 2: only the explained ones set the target, where the observation count is given."""
+    s = RoughnessSettings(min_decided=5)
+    costs = np.concatenate([_costs(20, [0.1], sharp=90.0) + 40.0, _costs(20, [0.43]) + 2.0,
+                            _valleys(20, 0.06, 0.5)], axis=1)
+    base = np.full((60, 3), 0.3)
+    assert choose_roughness(costs, base, np.full(60, 0.3), s, seed=0, observations=48).targets[0] == pytest.approx(
+        0.43, rel=0.02)
+    counted = choose_roughness(costs, base, np.full(60, 0.3), s, seed=0).targets[0]
+    assert counted < 0.43
+
+
+def test_decision_rates_of_a_plane_under_near_lamps_are_highest_between_the_ends():
+    """A plane under the 16 lamps 1-3 widths away of benchmarks/flat_check.py, seen by the fit's own model: a
+    middling lobe is decided on many pixels, a mirror-like one only where a lamp's reflection falls, a very broad
+    one hardly anywhere."""
+    import sys
+
+    import torch
+
+    from matcap.refine.model import LightParams
+    from matcap.refine.roughness import decision_rates
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import flat_check as F
+
+    pos = torch.from_numpy(F.plane_points(24)).float()
+    n_px = len(pos)
+    normal = torch.tensor([0.0, 0.0, 1.0]).repeat(n_px, 1)
+    lamps = F.make_lights("near", 16, seed=0, size=24)
+    lights = LightParams("point", torch.tensor([l.position for l in lamps]).float(),
+                         torch.tensor([l.intensity for l in lamps]).float().log(), torch.zeros(1, 9, 3))
+    rates = decision_rates(torch, pos, normal, torch.full((n_px, 3), 0.5), torch.zeros(n_px), lights,
+                           RoughnessSettings())
+    assert rates.shape == (len(GRID),) and np.all((rates >= 0) & (rates <= 1))
+    peak = rates.max()
+    assert 0.2 < peak and 0.1 < GRID[int(rates.argmax())] < 0.6, rates
+    assert rates[0] < peak / 3 and rates[-1] < peak / 3, rates
+
+
 def test_an_objects_targets_come_from_its_own_decided_pixels_and_the_typical_from_all():
     s = RoughnessSettings(min_decided=5)
     # group 0: 6 pixels decided at 0.3 and 10 ambiguous; group 1: 6 decided at 0.1; group 2: 3 decided at 0.06
@@ -130,8 +206,8 @@ def test_a_glossy_glaze_under_known_lamps_gets_its_roughness():
         res = refine(photos, start, RefineSettings(seed=0).replace({"roughness.iters": iters}), lights=known,
                      flat=True)
         rmse[iters] = float(np.sqrt(((res.maps.roughness - truth.roughness) ** 2).mean()))
-    assert rmse[0] > 0.3, rmse  # measured 0.52
-    assert rmse[RoughnessSettings().iters] < 0.15, rmse  # measured 0.12
+    assert rmse[0] > 0.3, rmse  # measured 0.51
+    assert rmse[RoughnessSettings().iters] < 0.12, rmse  # measured 0.094
 
 
 def test_shade_base_linear_splits_the_model():

@@ -697,14 +697,15 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     colour and metallic; ``plane``: a flat sample's rule, :func:`matcap.refine.roughness.choose_roughness`, else an
     object's, :func:`_object_choice`) and each material group's metallic, 0 or 1, where the photos of a sample of
     its pixels vote for it (:func:`_metallic_vote`); then the per-pixel solve again for the pixels whose roughness
-    the choice moved by more than ``roughness.moved`` (a factor) or whose metallic lies more than
-    ``roughness.metallic_moved`` from the one held (their group's), from the chosen values held by priors of weight
-    ``roughness.hold`` and ``roughness.metallic_hold`` (a group without a clear vote holds the networks' metallic,
-    the prior's); a pixel re-solved for its metallic alone keeps its normal. The others keep their fit. With
+    the choice moved by more than ``roughness.moved`` (a factor; ``roughness.moved_flat`` on a flat sample) or
+    whose metallic lies more than ``roughness.metallic_moved`` from the one held (their group's), from the chosen
+    values held by priors of weight ``roughness.hold`` and ``roughness.metallic_hold`` (a group without a clear vote
+    holds the networks' metallic, the prior's); a pixel re-solved for its metallic alone keeps its normal. The
+    others keep their fit. With
     ``roughness.choose`` off nothing is chosen: every pixel keeps its roughness (held at ``priors.rough``), and
     only the metallic vote runs.
     Returns (the new :class:`PixelParams`, the :class:`matcap.refine.roughness.RoughnessChoice`)."""
-    from matcap.refine.roughness import choose_roughness, held_metallic, held_roughness
+    from matcap.refine.roughness import choose_roughness, decision_rates, held_metallic, held_roughness
 
     r = s.roughness
     with torch.no_grad():
@@ -713,11 +714,14 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
         choice = held_roughness(base.cpu().numpy(), rough.cpu().numpy(), r, s.seed)
     elif plane:
         costs = _grid_costs_parallel(torch, full, normal, base, rough, metal, lights, r)
-        choice = choose_roughness(costs, base.cpu().numpy(), rough.cpu().numpy(), r, s.seed)
+        few = torch.from_numpy(_stage_sample(len(full), s, r.rate_pixels)).to(normal.device)
+        rates = decision_rates(torch, full.pos[few], normal[few], base[few], metal[few], lights, r)
+        choice = choose_roughness(costs, base.cpu().numpy(), rough.cpu().numpy(), r, s.seed, rates,
+                                  observations=3 * full.obs.shape[0])
     else:
         choice = _object_choice(torch, full, normal, base, rough, metal, lights, s)
     moved = np.abs(np.log(np.maximum(choice.rough, 1e-3)) - np.log(np.maximum(rough.cpu().numpy(), 1e-3))) > np.log(
-        r.moved)
+        r.moved_flat if plane else r.moved)
     held_metal = None
     if r.metallic_hold > 0:
         choice.metallic = _metallic_vote(torch, full, normal, base, rough, metal, choice, lights, s)
@@ -739,9 +743,11 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     return PixelParams(*out), choice
 
 
-def _stage_sample(n: int, s: RefineSettings) -> np.ndarray:
-    """(S,) sorted indices of a random sample of ``roughness.sample`` of ``n`` pixels (all where fewer; ``seed``)."""
-    return np.sort(np.random.default_rng(s.seed).choice(n, size=min(n, s.roughness.sample), replace=False))
+def _stage_sample(n: int, s: RefineSettings, size: int | None = None) -> np.ndarray:
+    """(S,) sorted indices of a random sample of ``size`` (default ``roughness.sample``) of ``n`` pixels (all where
+    fewer; ``seed``)."""
+    size = s.roughness.sample if size is None else size
+    return np.sort(np.random.default_rng(s.seed).choice(n, size=min(n, size), replace=False))
 
 
 def _metallic_vote(torch, full: _Problem, normal, base, rough, metal, choice, lights,

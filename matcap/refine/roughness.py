@@ -7,13 +7,16 @@ range that explains them worse. The per-pixel solve, started from the networks' 
 the two it starts nearer. This stage looks at a pixel's whole range instead: it tries each value of a grid
 (the base colour solved in closed form, the normal and metallic as fitted), keeps the values within a tolerance of
 the best, and where those span a narrow range the pixel decides its own roughness. Pixels that do not are given
-the allowed value nearest the typical decided roughness of their material (pixels grouped by fitted base colour).
+an allowed value near the typical decided roughness of their material (pixels grouped by fitted base colour).
 
 Two rules, by what the pixels share:
 
 - a flat sample (:func:`choose_roughness`): every pixel faces the camera under the same lamps and started from
   the networks' guess on the same side of the barrier, so decided pixels move to their own best value and a
-  material without decided pixels takes the sample's typical one;
+  material without decided pixels takes the sample's typical one. A narrow or a very broad lobe is decided on
+  far fewer pixels than one in between, so each decided pixel counts in its material's target by how rarely its
+  roughness would be decided (:func:`decision_rates`); an undecided pixel takes the bottom of the valley of its
+  costs that the target falls nearest;
 - an object (:func:`object_targets`, :func:`follow_targets`): its pixels face every way, so a pixel that saw a
   highlight already had it in the per-pixel solve, with the full model (cast shadows, the outline's mixing), and
   keeps that fit; the others follow their material's target, and the targets come from a sample of the pixels. A
@@ -276,16 +279,76 @@ def held_roughness(base: np.ndarray, fitted: np.ndarray, s: RoughnessSettings, s
     return RoughnessChoice(np.asarray(fitted, np.float32), np.zeros(0, bool), groups, np.full(count, np.nan), "held")
 
 
+def decision_rates(torch, pos, normal, base, metal, lights, s: RoughnessSettings) -> np.ndarray:
+    """(G,) float64: for each roughness v of ``s.grid``, the share of the pixels given (pos (S, 3), normal (S, 3),
+    base (S, 3) 0-1, metal (S,) torch; a sample of the capture's) whose photos would decide their roughness
+    (:func:`_span`) were it v: the model's own photos of them at v (no noise, nothing clipped), scored by
+    :func:`grid_costs` under ``lights`` (:class:`matcap.refine.model.LightParams`).
+
+    A pixel decides its roughness only where some lamp's reflection falls near enough to its normal for the
+    lobe's shape to show: a narrow lobe needs a lamp almost at the mirror direction, and a very broad one is hard
+    to tell from the diffuse colour, so the decided pixels of a material over-represent the roughnesses in between.
+    :func:`choose_roughness` weighs each decided pixel by one over its value's rate to undo that."""
+    from matcap.refine.model import shade_base_linear
+
+    grid = np.asarray(s.grid, np.float64)
+    n = len(pos)
+    if n == 0:
+        return np.zeros(len(grid))
+    with torch.no_grad():
+        tile = (len(grid), 1)
+        pos_t, nrm_t, base_t = pos.repeat(*tile), normal.repeat(*tile), base.repeat(*tile)
+        metal_t = metal.repeat(len(grid))
+        rough_t = torch.from_numpy(np.repeat(grid, n)).to(pos.dtype).to(pos.device)
+        wo, irr = lights.incident(pos_t)
+        p0, a = shade_base_linear(nrm_t, rough_t, metal_t, wo, irr, lights.sh)
+        obs = p0 + base_t[None] * a
+        upper = torch.full_like(obs, float("inf"))
+        costs = grid_costs(torch, obs, upper, pos_t, nrm_t, metal_t, lights, grid, s.noise)
+    return _span(costs, s)[3].reshape(len(grid), n).mean(axis=1)
+
+
+def _descend(costs: np.ndarray, allowed: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """(N,) grid index: from ``start`` (N,) each pixel steps to the cheaper of its allowed grid neighbours while
+    that lowers its cost (costs, allowed (G, N)): the bottom of the valley of its costs that holds ``start``."""
+    cols = np.arange(costs.shape[1])
+    top = costs.shape[0] - 1
+    at = np.asarray(start).copy()
+    for _ in range(costs.shape[0]):
+        up, down = np.minimum(at + 1, top), np.maximum(at - 1, 0)
+        c_up = np.where(allowed[up, cols], costs[up, cols], np.inf)
+        c_down = np.where(allowed[down, cols], costs[down, cols], np.inf)
+        here = costs[at, cols]
+        step = np.where((c_up < here) & (c_up <= c_down), up, np.where(c_down < here, down, at))
+        if np.array_equal(step, at):
+            break
+        at = step
+    return at
+
+
+def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
+    """The value of ``x`` (M,) at which the cumulative weight ``w`` (M,) reaches half its total."""
+    order = np.argsort(x)
+    cum = np.cumsum(w[order])
+    return float(x[order][np.searchsorted(cum, cum[-1] / 2.0)])
+
+
 def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s: RoughnessSettings,
-                     seed: int) -> RoughnessChoice:
+                     seed: int, rates: np.ndarray | None = None, observations: int | None = None) -> RoughnessChoice:
     """Each pixel's roughness from its grid costs (:func:`grid_costs`, (G, N)), its fitted base colour (N, 3) and
     fitted roughness (N,).
 
     A pixel's allowed values are the grid values within ``s.tolerance`` of its lowest cost; where they span at
     most a factor ``s.width`` the pixel is decided, at the vertex of the parabola through its lowest cost and its
-    two neighbours (in log roughness, kept inside them). The others take the allowed value nearest (in log
-    roughness) their group's target: the median log roughness of the group's decided pixels where it has
-    ``s.min_decided`` of them, else of every decided pixel. Where no pixel is decided the fitted roughness stays.
+    two neighbours (in log roughness, kept inside them). A group's target is the weighted median log roughness of
+    its decided pixels where it has ``s.min_decided`` of them, else of every decided pixel; each decided pixel
+    weighs one over ``rates`` (G,) (:func:`decision_rates`, no lower than ``s.rate_floor``) at its grid value
+    nearest, so that a roughness rarely decided counts for the pixels of it that were not (None: equal weights).
+    Only the decided pixels that the model explains count toward the targets: lowest cost at most
+    ``s.explained`` per observation (``observations``, photos x 3 channels; None: every decided pixel counts).
+    The others start from the allowed value nearest (in log roughness) their group's target and descend their own
+    costs to the bottom of that valley (:func:`_descend`): the target picks between a narrow lobe and a broad one,
+    the pixel's photos place it within. Where no pixel is decided the fitted roughness stays.
     """
     grid = np.asarray(s.grid, np.float64)
     lg = np.log(grid)[:, None]
@@ -296,9 +359,18 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
     if not decided.any():
         return RoughnessChoice(np.asarray(fitted, np.float32), decided, groups, np.full(n_groups, np.nan))
     middle = np.where(decided, _vertex(costs, np.log(grid)), (lo + hi) / 2.0)
-    targets = _medians(middle, decided, groups, n_groups, s.min_decided)
-    typical = _typical(middle, decided, 1)
+    rate = np.ones(len(grid)) if rates is None else np.maximum(np.asarray(rates, np.float64), s.rate_floor)
+    weight = 1.0 / rate[np.abs(middle[:, None] - lg.T).argmin(axis=1)]
+    evidence = decided if observations is None else decided & (costs.min(axis=0) <= s.explained * observations)
+    if not evidence.any():
+        evidence = decided
+    targets = np.full(n_groups, np.nan)
+    for j in range(n_groups):
+        own = (groups == j) & evidence
+        if own.sum() >= s.min_decided:
+            targets[j] = float(np.exp(_weighted_median(middle[own], weight[own])))
+    typical = float(np.exp(_weighted_median(middle[evidence], weight[evidence])))
     target = np.log(np.where(np.isfinite(targets), targets, typical))[groups]
     nearest = np.where(allowed, np.abs(lg - target[None]), np.inf).argmin(axis=0)
-    rough = np.where(decided, np.exp(middle), grid[nearest]).astype(np.float32)
+    rough = np.where(decided, np.exp(middle), grid[_descend(costs, allowed, nearest)]).astype(np.float32)
     return RoughnessChoice(rough, decided, groups, targets, typical=typical)

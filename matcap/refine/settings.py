@@ -223,6 +223,16 @@ class RoughnessSettings:
     min_decided: int = 20
     """A group with fewer decided pixels has no target of its own and takes the typical roughness of every decided
     pixel (on an object, only its pixels whose photos allow that value; the others keep their fit)."""
+    rate_pixels: int = 1000
+    """A flat sample: how often each roughness of ``grid`` would be decided (a decided pixel's weight in its group's
+    target is one over that share) is measured on this many of its pixels (a random sample)."""
+    rate_floor: float = 0.02
+    """The least share a roughness is taken to be decided at, bounding a decided pixel's weight (1 / share)."""
+    explained: float = 0.25
+    """A flat sample: a decided pixel counts toward its material's target only where its lowest cost per
+    observation (photo and channel) is at most this, log(1 + x^2) with x the residual over ``noise`` times the
+    pixel's brightness (0.25: about half of that scale); a pixel the model does not explain (a boundary between
+    materials, a wrong normal) can decide a wrong value."""
     sample: int = 20000
     """An object's targets come from the scores of this many of its pixels (a random sample); then only the
     pixels farther than ``moved`` from their group's target are scored."""
@@ -231,6 +241,9 @@ class RoughnessSettings:
     moved: float = 1.25
     """The last solve takes the pixels whose chosen roughness differs from the fitted one by more than this
     factor; the others keep their fit."""
+    moved_flat: float = 1.05
+    """The same on a flat sample, where every pixel is scored and takes a value of its own (its best, or the bottom
+    of the valley its material's target picks), so that the choice reaches nearly every pixel."""
     metallic_hold: float = 5.0
     """Weight of (m - m_group)^2 in the last solve, m_group each material group's metallic, 0 or 1, as the photos
     of a sample of its pixels vote (:func:`matcap.refine.roughness.group_metallic`; a group whose vote is not
