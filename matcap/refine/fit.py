@@ -648,7 +648,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     choice = None
     if s.roughness.iters > 0 and s.model.fit_brdf:
         t_r = time.perf_counter()
-        px_full, choice = _roughness_stage(torch, full, px_full, lights, s, bar, mixing, plane=flat is not None)
+        px_full, choice = _roughness_stage(torch, full, px_full, lights, s, bar, mixing, plane=flat is not None,
+                                           lights_found=known.source == "estimated")
         timings["roughness_s"] = time.perf_counter() - t_r
     detail = s.pixels.found_lamps_detail if known.source == "estimated" else 0.0
     if detail > 0:
@@ -692,18 +693,18 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
 
 
 def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, mixing: "_Mixing | None",
-                     plane: bool):
+                     plane: bool, lights_found: bool = False):
     """Known lights: pixels' roughness chosen among the values their photos allow (from the fitted normals, base
-    colour and metallic; ``plane``: a flat sample's rule, :func:`matcap.refine.roughness.choose_roughness`, else an
-    object's, :func:`_object_choice`) and each material group's metallic, 0 or 1, where the photos of a sample of
-    its pixels vote for it (:func:`_metallic_vote`); then the per-pixel solve again for the pixels whose roughness
-    the choice moved by more than ``roughness.moved`` (a factor; ``roughness.moved_flat`` on a flat sample) or
-    whose metallic lies more than ``roughness.metallic_moved`` from the one held (their group's), from the chosen
-    values held by priors of weight ``roughness.hold`` and ``roughness.metallic_hold`` (a group without a clear vote
-    holds the networks' metallic, the prior's); a pixel re-solved for its metallic alone keeps its normal. The
-    others keep their fit. With
-    ``roughness.choose`` off nothing is chosen: every pixel keeps its roughness (held at ``priors.rough``), and
-    only the metallic vote runs.
+    colour and metallic; ``plane``: a flat sample's rule, :func:`matcap.refine.roughness.choose_roughness`, its
+    undecided pixels at the bottom of their own valley unless ``lights_found`` (lamps found from the photos'
+    falloff), else an object's, :func:`_object_choice`) and each material group's metallic, 0 or 1, where the photos
+    of a sample of its pixels vote for it (:func:`_metallic_vote`); then the per-pixel solve again for the pixels
+    whose roughness the choice moved by more than ``roughness.moved`` (a factor; ``roughness.moved_flat`` on a flat
+    sample) or whose metallic lies more than ``roughness.metallic_moved`` from the one held (their group's), from
+    the chosen values held by priors of weight ``roughness.hold`` and ``roughness.metallic_hold`` (a group without a
+    clear vote holds the networks' metallic, the prior's); a pixel re-solved for its metallic alone keeps its
+    normal. The others keep their fit. With ``roughness.choose`` off nothing is chosen: every pixel keeps its
+    roughness (held at ``priors.rough``), and only the metallic vote runs.
     Returns (the new :class:`PixelParams`, the :class:`matcap.refine.roughness.RoughnessChoice`)."""
     from matcap.refine.roughness import choose_roughness, decision_rates, held_metallic, held_roughness
 
@@ -717,7 +718,7 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
         few = torch.from_numpy(_stage_sample(len(full), s, r.rate_pixels)).to(normal.device)
         rates = decision_rates(torch, full.pos[few], normal[few], base[few], metal[few], lights, r)
         choice = choose_roughness(costs, base.cpu().numpy(), rough.cpu().numpy(), r, s.seed, rates,
-                                  observations=3 * full.obs.shape[0])
+                                  observations=3 * full.obs.shape[0], descend=not lights_found)
     else:
         choice = _object_choice(torch, full, normal, base, rough, metal, lights, s)
     moved = np.abs(np.log(np.maximum(choice.rough, 1e-3)) - np.log(np.maximum(rough.cpu().numpy(), 1e-3))) > np.log(

@@ -334,7 +334,8 @@ def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
 
 
 def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s: RoughnessSettings,
-                     seed: int, rates: np.ndarray | None = None, observations: int | None = None) -> RoughnessChoice:
+                     seed: int, rates: np.ndarray | None = None, observations: int | None = None,
+                     descend: bool = True) -> RoughnessChoice:
     """Each pixel's roughness from its grid costs (:func:`grid_costs`, (G, N)), its fitted base colour (N, 3) and
     fitted roughness (N,).
 
@@ -348,7 +349,9 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
     ``s.explained`` per observation (``observations``, photos x 3 channels; None: every decided pixel counts).
     The others start from the allowed value nearest (in log roughness) their group's target and descend their own
     costs to the bottom of that valley (:func:`_descend`): the target picks between a narrow lobe and a broad one,
-    the pixel's photos place it within. Where no pixel is decided the fitted roughness stays.
+    the pixel's photos place it within. ``descend`` False: they stay at that allowed value (lamps found from the
+    photos themselves, whose errors each pixel's costs carry and the material's shared target averages out). Where
+    no pixel is decided the fitted roughness stays.
     """
     grid = np.asarray(s.grid, np.float64)
     lg = np.log(grid)[:, None]
@@ -372,5 +375,6 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
     typical = float(np.exp(_weighted_median(middle[evidence], weight[evidence])))
     target = np.log(np.where(np.isfinite(targets), targets, typical))[groups]
     nearest = np.where(allowed, np.abs(lg - target[None]), np.inf).argmin(axis=0)
-    rough = np.where(decided, np.exp(middle), grid[_descend(costs, allowed, nearest)]).astype(np.float32)
+    chosen = _descend(costs, allowed, nearest) if descend else nearest
+    rough = np.where(decided, np.exp(middle), grid[chosen]).astype(np.float32)
     return RoughnessChoice(rough, decided, groups, targets, typical=typical)
