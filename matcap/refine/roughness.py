@@ -363,7 +363,7 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
         return RoughnessChoice(np.asarray(fitted, np.float32), decided, groups, np.full(n_groups, np.nan))
     middle = np.where(decided, _vertex(costs, np.log(grid)), (lo + hi) / 2.0)
     rate = np.ones(len(grid)) if rates is None else np.maximum(np.asarray(rates, np.float64), s.rate_floor)
-    weight = 1.0 / rate[np.abs(middle[:, None] - lg.T).argmin(axis=1)]
+    weight = 1.0 / rate[np.searchsorted((lg[1:, 0] + lg[:-1, 0]) / 2.0, middle)]  # the grid value nearest
     evidence = decided if observations is None else decided & (costs.min(axis=0) <= s.explained * observations)
     if not evidence.any():
         evidence = decided
