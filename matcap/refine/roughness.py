@@ -346,7 +346,8 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
     weighs one over ``rates`` (G,) (:func:`decision_rates`, no lower than ``s.rate_floor``) at its grid value
     nearest, so that a roughness rarely decided counts for the pixels of it that were not (None: equal weights).
     Only the decided pixels that the model explains count toward the targets: lowest cost at most
-    ``s.explained`` per observation (``observations``, photos x 3 channels; None: every decided pixel counts).
+    ``s.explained`` per observation (``observations``, photos x 3 channels; None, or no decided pixel explained:
+    every decided pixel counts).
     The others start from the allowed value nearest (in log roughness) their group's target and descend their own
     costs to the bottom of that valley (:func:`_descend`): the target picks between a narrow lobe and a broad one,
     the pixel's photos place it within. ``descend`` False: they stay at that allowed value (lamps found from the
