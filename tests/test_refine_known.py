@@ -310,6 +310,29 @@ def test_neighbour_median_is_numpys_nanmedian_of_the_neighbours():
     np.testing.assert_allclose(got[~lone], expected[~lone], rtol=0, atol=1e-7)
 
 
+def test_window_median_is_numpys_nanmedian_of_the_window():
+    """A 5 x 5 window's median over the mask's pixels, the pixel itself included, as numpy's nanmedian gives it,
+    on a random mask (so that windows hold odd and even counts)."""
+    import warnings
+
+    from matcap.refine.fit import window_median
+
+    rng = np.random.default_rng(1)
+    hw = (30, 40)
+    rows, cols = np.nonzero(rng.random(hw) < 0.5)
+    v = rng.random((len(rows), 2)).astype(np.float32)
+    img = np.full((hw[0] + 4, hw[1] + 4, 2), np.nan, np.float32)
+    img[rows + 2, cols + 2] = v
+    around = np.stack([img[rows + dy, cols + dx] for dy in range(5) for dx in range(5)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        expected = np.nanmedian(around, axis=0)
+    got = window_median(v, rows, cols, hw, 5)
+    counts = np.isfinite(around[:, :, 0]).sum(0)
+    assert (counts % 2 == 0).any() and (counts % 2 == 1).any()
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-7)
+
+
 def test_known_ambient_order_out_of_range_is_one_line():
     truth = S.sphere_maps(24)
     lights = S.known_lights(6)

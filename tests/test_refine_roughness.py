@@ -296,3 +296,71 @@ def test_held_metallic_is_the_vote_where_there_is_one_else_the_networks():
     held = held_metallic(np.float32([1.0, np.nan, 0.0]), groups, prior)
     assert held.dtype == np.float32 and held.shape == (6,)
     np.testing.assert_array_equal(held, np.float32([1.0, 0.6, 0.0, 0.0, 0.2, 1.0]))
+
+
+def test_pooling_takes_the_neighbourhoods_roughness_where_the_photos_allow_it():
+    """A dome of one grey material (roughness 0.6) under 12 distant lights, rendered with the fit's own model. A
+    third of its pixels (three in every 3 x 3 window) start from a wrong roughness (0.3 or 0.9) with the base colour
+    that fits it, and one pixel, whose normal is the half vector of a light (a highlight), is truly glossy (0.1).
+    After pooling the wrong values are the neighbourhood's 0.6, their base colour rescaled so that the photos are
+    explained about as well as where the start was right, and the glossy pixel, whose highlight rules 0.6 out,
+    keeps its own."""
+    import torch
+
+    from matcap.refine.fit import _Problem, _pool_brdf
+    from matcap.refine.model import LightParams, PixelParams, shade_fast
+    from matcap.refine.roughness import base_solution
+    from matcap.refine.settings import RefineSettings
+
+    side = 24
+    yy, xx = (np.mgrid[0:side, 0:side] + 0.5) / side * 2 - 1
+    normal = np.dstack([0.6 * xx, -0.6 * yy, np.ones_like(xx)])
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(12, 3))
+    d[:, 2] = np.abs(d[:, 2]) + 1.0
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    half = d[0] + np.float64([0, 0, 1])
+    normal[12, 12] = half / np.linalg.norm(half)  # the glossy pixel faces the half vector of light 0
+    rough = np.full((side, side), 0.6)
+    rough[12, 12] = 0.1
+    base = np.full((side, side, 3), 0.5)
+    lights = LightParams("directional", torch.tensor(d, dtype=torch.float32), torch.full((12, 3), float(np.log(2.0))),
+                         torch.zeros(1, 9, 3))
+    def t(a):  # (side, side[, 3]) -> (N[, 3]) torch
+        a = np.asarray(a, np.float32)
+        return torch.from_numpy(a.reshape(side * side, *a.shape[2:]).copy())
+
+    with torch.no_grad():
+        wo, irr = lights.incident(None)
+        obs = shade_fast(t(normal), t(base), t(rough), torch.zeros(side * side), wo, irr, lights.sh)
+    stack = obs.numpy().reshape(12, side, side, 3)
+    mask = np.ones((side, side), bool)
+    start = rough.copy()
+    ii, jj = np.mgrid[0:side, 0:side]
+    wrong = (ii + jj) % 3 == 0  # three in every 3 x 3 window
+    wrong[12, 12] = False
+    start[wrong] = np.where(ii % 2 == 0, 0.3, 0.9)[wrong]
+    arrays = {"normal": normal.astype(np.float32), "base": base.astype(np.float32),
+              "rough": start.astype(np.float32), "metal": np.zeros((side, side), np.float32)}
+    prob = _Problem(torch, stack, mask, arrays, np.ones((side, side), np.float32), np.full((12, 3), 1e9, np.float32),
+                    torch.device("cpu"))
+    with torch.no_grad():  # each pixel's base colour as a fit at its start roughness gives it: least squares
+        fitted_base = base_solution(prob.pos, prob.n0, prob.r0, prob.m0, lights, prob.obs, torch.ones_like(prob.obs))
+    px = PixelParams.from_maps(prob.n0, fitted_base.clamp(0.0, 1.0), prob.r0, prob.m0)
+    pooled, share = _pool_brdf(torch, prob, px, lights, (side, side), RefineSettings())
+    with torch.no_grad():
+        got = pooled.rough().numpy().reshape(side, side)
+        err = lambda p: (shade_fast(p.normal(), p.base(), p.rough(), p.metal(), wo, irr, lights.sh) - obs).abs()  # noqa
+        before, after = err(px).mean(dim=(0, 2)).numpy(), err(pooled).mean(dim=(0, 2)).numpy()
+    inner = np.zeros((side, side), bool)
+    inner[1:-1, 1:-1] = True
+    fixed = wrong & inner
+    fixed[11:14, 11:14] = False
+    assert np.abs(got[fixed] - 0.6).max() < 1e-3, np.abs(got[fixed] - 0.6).max()
+    assert abs(got[12, 12] - 0.1) < 1e-3, got[12, 12]  # its highlight rules the neighbourhood's 0.6 out
+    after, before = after.reshape(side, side), before.reshape(side, side)
+    assert after[fixed].mean() < 0.6 * before[fixed].mean(), (after[fixed].mean(), before[fixed].mean())
+    # about as well as the pixels that started right (measured 0.0078 against 0.0055)
+    assert after[fixed].mean() < 2.0 * after[~wrong & inner].mean(), (after[fixed].mean(), after[~wrong].mean())
+    assert 0.3 < share < 1.0

@@ -650,6 +650,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         t_r = time.perf_counter()
         px_full, choice = _roughness_stage(torch, full, px_full, lights, s, bar, mixing, plane=flat is not None,
                                            lights_found=known.source == "estimated")
+        px_full, pooled_share = _pool_brdf(torch, full, px_full, lights, mask.shape, s)
         timings["roughness_s"] = time.perf_counter() - t_r
     detail = s.pixels.found_lamps_detail if known.source == "estimated" else 0.0
     if detail > 0:
@@ -682,7 +683,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "ambient_share": round(out.ambient_share, 4),
         "cast_shadow_share": round(out.shadowed_share, 4),
         "outline": _outline_record(torch, mixing),
-        "roughness": None if choice is None else choice.record(),
+        "roughness": None if choice is None else {**choice.record(), "pooled_share": round(pooled_share, 4)},
         "restarts": restarts,
         "smooth_tilt_removed_sigma_widths": detail or None,
         "timings": {k: round(v, 3) for k, v in timings.items()},
@@ -744,6 +745,52 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     return PixelParams(*out), choice
 
 
+def _pool_brdf(torch, full: _Problem, px, lights, hw: tuple[int, int], s: RefineSettings):
+    """Known lights, after the roughness stage: each pixel's roughness and metallic become the median of their
+    ``roughness.pool`` x ``roughness.pool`` window among the fitted pixels ``full`` (of an ``hw`` frame) where its
+    own photos allow those values (their cost, :func:`matcap.refine.roughness.value_costs`, within
+    ``roughness.tolerance`` of its cost at its fitted ones): a surface's finish varies far more slowly than one
+    pixel's photos pin it down where they show no highlight, and the median keeps the edges between materials.
+    Each channel of such a pixel's base colour is scaled by how much its closed-form base colour
+    (:func:`matcap.refine.roughness.base_solution`, at its fitted normal) changes from the fitted roughness and
+    metallic to the pooled ones, so that the maps still explain the photos; the normals keep their fit.
+    Returns (the new :class:`PixelParams`, the share of pixels that took the pooled values)."""
+    from matcap.refine.model import PixelParams, _logit
+    from matcap.refine.roughness import base_solution, value_costs
+
+    size = s.roughness.pool
+    if size < 2 or len(full) == 0:
+        return px, 0.0
+    with torch.no_grad():
+        normal, base, rough, metal = px.normal(), px.base(), px.rough(), px.metal()
+        # the median of the logits: the same values (a median commutes with the sigmoid), none clipped
+        fitted = torch.stack([px.rough_logit, px.metal_logit], dim=1).detach().cpu().numpy()
+        pooled = torch.from_numpy(window_median(fitted, full.rows, full.cols, hw, size)).to(rough.device)
+        r_pool, m_pool = torch.sigmoid(pooled[:, 0]), torch.sigmoid(pooled[:, 1])  # never NaN: a window holds its pixel
+        costs = _costs_parallel(
+            torch, full, normal, base, rough, metal, lights,
+            lambda obs, upper, pos, nrm, sl: value_costs(torch, obs, upper, pos, nrm,
+                                                         ((rough[sl], metal[sl]), (r_pool[sl], m_pool[sl])),
+                                                         lights, s.roughness.noise))
+        take = torch.from_numpy(costs[1] - costs[0] <= s.roughness.tolerance).to(rough.device)
+        r_new, m_new = torch.where(take, r_pool, rough), torch.where(take, m_pool, metal)
+        factor = torch.ones_like(base)
+        for i in range(0, len(full), 8192):
+            sl = slice(i, min(i + 8192, len(full)))
+            obs, upper = full.obs[:, sl], full.upper[:, sl]
+            res = _shade(lights, full.pos[sl], normal[sl], base[sl], rough[sl], metal[sl]) - obs
+            used = ((upper > 0) & (res <= upper)).to(obs.dtype)  # not clipped, nor in cast shadow as fitted
+            before = base_solution(full.pos[sl], normal[sl], rough[sl], metal[sl], lights, obs, used)
+            after = base_solution(full.pos[sl], normal[sl], r_new[sl], m_new[sl], lights, obs, used)
+            ok = take[sl, None] & (before > 1e-4) & (after > 0)
+            factor[sl] = torch.where(ok, after / before.clamp(min=1e-4), factor[sl])
+        new_base = (base * factor).clamp(0.01, 0.99)
+    params = PixelParams(px.grad.detach().clone(), torch.where(take[:, None], _logit(new_base), px.base_logit.detach()),
+                         torch.where(take, pooled[:, 0], px.rough_logit.detach()),
+                         torch.where(take, pooled[:, 1], px.metal_logit.detach()))
+    return params, float(take.float().mean())
+
+
 def _stage_sample(n: int, s: RefineSettings, size: int | None = None) -> np.ndarray:
     """(S,) sorted indices of a random sample of ``size`` (default ``roughness.sample``) of ``n`` pixels (all where
     fewer; ``seed``)."""
@@ -771,19 +818,35 @@ def _metallic_vote(torch, full: _Problem, normal, base, rough, metal, choice, li
     return group_metallic(costs, choice.groups[sample], len(choice.targets), metal.cpu().numpy()[sample], r)
 
 
+def window_median(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, hw: tuple[int, int], size: int = 3,
+                  centre: bool = True) -> np.ndarray:
+    """(N, C) float32: the channel-wise median of ``values`` (N, C) over each pixel's ``size`` x ``size`` window
+    (odd) among the N pixels at ``rows``, ``cols`` (N,) of an ``hw`` frame (``centre`` False: the pixel itself left
+    out); an even count takes the mean of the middle two; NaN where a window holds none of them."""
+    h, w = hw
+    half = size // 2
+    values = np.asarray(values, np.float32).reshape(len(rows), -1)
+    img = np.full((h + 2 * half, w + 2 * half, values.shape[1]), np.nan, np.float32)
+    img[rows + half, cols + half] = values
+    out = np.empty_like(values)
+    step = max(1, (1 << 22) // (size * size * values.shape[1]))  # pixels per chunk: about 16 MB of windows
+    for a in range(0, len(rows), step):
+        r, c = rows[a:a + step], cols[a:a + step]
+        around = np.sort(np.stack([img[r + dy, c + dx] for dy in range(size) for dx in range(size)
+                                   if centre or (dy, dx) != (half, half)]), axis=0)  # NaN (none there) sorts last
+        count = np.isfinite(around[:, :, 0]).sum(0)  # (n,) values in the window; the median: the middle one or two
+        lo, hi = (np.maximum(count - 1, 0) // 2)[None, :, None], (count // 2)[None, :, None]
+        med = 0.5 * (np.take_along_axis(around, lo, 0)[0] + np.take_along_axis(around, hi, 0)[0])
+        med[count == 0] = np.nan
+        out[a:a + step] = med
+    return out
+
+
 def neighbour_median(normal: np.ndarray, rows: np.ndarray, cols: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
     """(N, 3) unit: the component-wise median of the normals of each pixel's eight neighbours among the N pixels
     (``normal`` (N, 3) unit at ``rows``, ``cols`` (N,) of an ``hw`` frame), renormalised and kept facing the camera
     (z at least 0.08); NaN where a pixel has no neighbour."""
-    h, w = hw
-    img = np.full((h + 2, w + 2, 3), np.nan, np.float32)
-    img[rows + 1, cols + 1] = normal
-    around = np.sort(np.stack([img[rows + dy, cols + dx] for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)]),
-                     axis=0)  # NaN (no neighbour there) sorts last
-    count = np.isfinite(around[:, :, 0]).sum(0)  # (N,) neighbours; the median: the middle one or two of them
-    lo, hi = (np.maximum(count - 1, 0) // 2)[None, :, None], (count // 2)[None, :, None]
-    med = 0.5 * (np.take_along_axis(around, lo, 0)[0] + np.take_along_axis(around, hi, 0)[0])
-    med[count == 0] = np.nan
+    med = window_median(normal, rows, cols, hw, 3, centre=False)
     med[:, 2] = np.maximum(med[:, 2], 0.08)
     return med / np.maximum(np.linalg.norm(med, axis=1, keepdims=True), 1e-9)
 

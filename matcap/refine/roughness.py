@@ -102,6 +102,31 @@ def grid_costs(torch, obs, upper, pos, normal, metal, lights, grid, noise: float
     return out
 
 
+def base_solution(pos, normal, rough, metal, lights, obs, used):
+    """(N, 3) torch: each channel's least-squares base colour (not clipped) of N pixels at their ``normal`` (N, 3),
+    ``rough`` and ``metal`` (N,) under ``lights`` (:class:`matcap.refine.model.LightParams`) from the observations
+    ``obs`` (K, N, 3) where ``used`` (K, N, 3) is 1: the model is linear in the base colour."""
+    from matcap.refine.model import shade_base_linear
+
+    wo, irr = lights.incident(pos)
+    p0, a = shade_base_linear(normal, rough, metal, wo, irr, lights.sh)
+    return (used * a * (obs - p0)).sum(0) / (used * a * a).sum(0).clamp(min=1e-12)
+
+
+def value_costs(torch, obs, upper, pos, normal, values, lights, noise: float) -> np.ndarray:
+    """(V, N) float32: the data cost of :func:`grid_costs` of N pixels at each of V (roughness, metallic) pairs
+    ``values``, a sequence of ((N,), (N,)) torch, the base colour solved in closed form; the other arguments as
+    there."""
+    out = np.empty((len(values), obs.shape[1]), np.float32)
+    with torch.no_grad():
+        wo, irr = lights.incident(pos)
+        used = (upper > 0).to(obs.dtype)
+        scale = (noise * obs.mean(dim=(0, 2))).clamp(min=1e-4)[None, :, None]
+        for i, (r, m) in enumerate(values):
+            out[i] = _cost(normal, r, m, wo, irr, lights.sh, obs, upper, used, scale).cpu().numpy()
+    return out
+
+
 def _cost(nrm, rv, m, wo, irr, sh, o, up, used, scale):
     """(N,) the cost of :func:`grid_costs` at roughness ``rv`` and metallic ``m`` (N,), the base colour solved."""
     from matcap.refine.model import shade_base_linear

@@ -251,6 +251,10 @@ class RoughnessSettings:
     metallic_moved: float = 0.1
     """The last solve also takes the pixels whose fitted metallic differs from the one held (their group's, or
     the networks') by more than this (such a pixel keeps the normal the per-pixel solve gave it)."""
+    pool: int = 3
+    """After the last solve, each pixel's roughness and metallic take the median of this many pixels' square window
+    around it (the mask's pixels only; its base colour rescaled to match, its normal kept); 1: each pixel keeps its
+    own."""
 
 
 @dataclass
