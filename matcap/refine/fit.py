@@ -751,9 +751,10 @@ def _pool_brdf(torch, full: _Problem, px, lights, hw: tuple[int, int], s: Refine
     own photos allow those values (their cost, :func:`matcap.refine.roughness.value_costs`, within
     ``roughness.tolerance`` of its cost at its fitted ones): a surface's finish varies far more slowly than one
     pixel's photos pin it down where they show no highlight, and the median keeps the edges between materials.
-    Each channel of such a pixel's base colour is scaled by how much its closed-form base colour
+    Each channel of such a pixel's base colour moves by as much as its closed-form base colour
     (:func:`matcap.refine.roughness.base_solution`, at its fitted normal) changes from the fitted roughness and
-    metallic to the pooled ones, so that the maps still explain the photos; the normals keep their fit.
+    metallic to the pooled ones, so that the maps still explain the photos (a shift, not a factor: a glossy pixel's
+    closed-form base colour can be near 0); the normals keep their fit.
     Returns (the new :class:`PixelParams`, the share of pixels that took the pooled values)."""
     from matcap.refine.model import PixelParams, _logit
     from matcap.refine.roughness import base_solution, value_costs
@@ -774,7 +775,7 @@ def _pool_brdf(torch, full: _Problem, px, lights, hw: tuple[int, int], s: Refine
                                                          lights, s.roughness.noise))
         take = torch.from_numpy(costs[1] - costs[0] <= s.roughness.tolerance).to(rough.device)
         r_new, m_new = torch.where(take, r_pool, rough), torch.where(take, m_pool, metal)
-        factor = torch.ones_like(base)
+        shift = torch.zeros_like(base)
         for i in range(0, len(full), 8192):
             sl = slice(i, min(i + 8192, len(full)))
             obs, upper = full.obs[:, sl], full.upper[:, sl]
@@ -782,9 +783,8 @@ def _pool_brdf(torch, full: _Problem, px, lights, hw: tuple[int, int], s: Refine
             used = ((upper > 0) & (res <= upper)).to(obs.dtype)  # not clipped, nor in cast shadow as fitted
             before = base_solution(full.pos[sl], normal[sl], rough[sl], metal[sl], lights, obs, used)
             after = base_solution(full.pos[sl], normal[sl], r_new[sl], m_new[sl], lights, obs, used)
-            ok = take[sl, None] & (before > 1e-4) & (after > 0)
-            factor[sl] = torch.where(ok, after / before.clamp(min=1e-4), factor[sl])
-        new_base = (base * factor).clamp(0.01, 0.99)
+            shift[sl] = torch.where(take[sl, None], after - before, shift[sl])
+        new_base = (base + shift).clamp(0.01, 0.99)
     params = PixelParams(px.grad.detach().clone(), torch.where(take[:, None], _logit(new_base), px.base_logit.detach()),
                          torch.where(take, pooled[:, 0], px.rough_logit.detach()),
                          torch.where(take, pooled[:, 1], px.metal_logit.detach()))
