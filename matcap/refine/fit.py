@@ -748,16 +748,16 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
 def _pool_brdf(torch, full: _Problem, px, lights, hw: tuple[int, int], s: RefineSettings):
     """Known lights, after the roughness stage: each pixel's roughness and metallic become the median of their
     ``roughness.pool`` x ``roughness.pool`` window among the fitted pixels ``full`` (of an ``hw`` frame) where its
-    own photos allow those values (their cost, :func:`matcap.refine.roughness.value_costs`, within
+    own photos allow those values (their cost, :func:`matcap.refine.roughness.value_scores`, within
     ``roughness.tolerance`` of its cost at its fitted ones): a surface's finish varies far more slowly than one
     pixel's photos pin it down where they show no highlight, and the median keeps the edges between materials.
-    Each channel of such a pixel's base colour moves by as much as its closed-form base colour
-    (:func:`matcap.refine.roughness.base_solution`, at its fitted normal) changes from the fitted roughness and
-    metallic to the pooled ones, so that the maps still explain the photos (a shift, not a factor: a glossy pixel's
-    closed-form base colour can be near 0); the normals keep their fit.
+    Each channel of such a pixel's base colour moves by as much as its closed-form base colour (the one scored, at
+    its fitted normal) changes from the fitted roughness and metallic to the pooled ones, so that the maps still
+    explain the photos (a shift, not a factor: a glossy pixel's closed-form base colour can be near 0); the normals
+    keep their fit.
     Returns (the new :class:`PixelParams`, the share of pixels that took the pooled values)."""
     from matcap.refine.model import PixelParams, _logit
-    from matcap.refine.roughness import base_solution, value_costs
+    from matcap.refine.roughness import value_scores
 
     size = s.roughness.pool
     if size < 2 or len(full) == 0:
@@ -768,23 +768,14 @@ def _pool_brdf(torch, full: _Problem, px, lights, hw: tuple[int, int], s: Refine
         fitted = torch.stack([px.rough_logit, px.metal_logit], dim=1).detach().cpu().numpy()
         pooled = torch.from_numpy(window_median(fitted, full.rows, full.cols, hw, size)).to(rough.device)
         r_pool, m_pool = torch.sigmoid(pooled[:, 0]), torch.sigmoid(pooled[:, 1])  # never NaN: a window holds its pixel
-        costs = _costs_parallel(
+        scores = _costs_parallel(  # (2, 4, N): cost and closed-form base colour at the fitted and pooled values
             torch, full, normal, base, rough, metal, lights,
-            lambda obs, upper, pos, nrm, sl: value_costs(torch, obs, upper, pos, nrm,
-                                                         ((rough[sl], metal[sl]), (r_pool[sl], m_pool[sl])),
-                                                         lights, s.roughness.noise))
-        take = torch.from_numpy(costs[1] - costs[0] <= s.roughness.tolerance).to(rough.device)
-        r_new, m_new = torch.where(take, r_pool, rough), torch.where(take, m_pool, metal)
-        shift = torch.zeros_like(base)
-        for i in range(0, len(full), 8192):
-            sl = slice(i, min(i + 8192, len(full)))
-            obs, upper = full.obs[:, sl], full.upper[:, sl]
-            res = _shade(lights, full.pos[sl], normal[sl], base[sl], rough[sl], metal[sl]) - obs
-            used = ((upper > 0) & (res <= upper)).to(obs.dtype)  # not clipped, nor in cast shadow as fitted
-            before = base_solution(full.pos[sl], normal[sl], rough[sl], metal[sl], lights, obs, used)
-            after = base_solution(full.pos[sl], normal[sl], r_new[sl], m_new[sl], lights, obs, used)
-            shift[sl] = torch.where(take[sl, None], after - before, shift[sl])
-        new_base = (base + shift).clamp(0.01, 0.99)
+            lambda obs, upper, pos, nrm, sl: value_scores(torch, obs, upper, pos, nrm,
+                                                          ((rough[sl], metal[sl]), (r_pool[sl], m_pool[sl])),
+                                                          lights, s.roughness.noise))
+        take = torch.from_numpy(scores[1, 0] - scores[0, 0] <= s.roughness.tolerance).to(rough.device)
+        shift = torch.from_numpy((scores[1, 1:] - scores[0, 1:]).T.copy()).to(base.device)
+        new_base = torch.where(take[:, None], base + shift, base).clamp(0.01, 0.99)
     params = PixelParams(px.grad.detach().clone(), torch.where(take[:, None], _logit(new_base), px.base_logit.detach()),
                          torch.where(take, pooled[:, 0], px.rough_logit.detach()),
                          torch.where(take, pooled[:, 1], px.metal_logit.detach()))
@@ -977,11 +968,11 @@ def _grid_costs_parallel(torch, full: _Problem, normal, base, rough, metal, ligh
 
 
 def _costs_parallel(torch, full: _Problem, normal, base, rough, metal, lights, score) -> np.ndarray:
-    """``score(obs, upper, pos, normal, sl)`` -> (C, n) of every pixel of ``full`` chunk by chunk (``sl`` the
+    """``score(obs, upper, pos, normal, sl)`` -> (..., n) of every pixel of ``full`` chunk by chunk (``sl`` the
     chunk's slice of the N pixels), on as many threads as torch was given, each of them with one-thread
     operations (as :func:`_solve_pixels`). The observations the fitted maps ``normal``, ``base``, ``rough``,
     ``metal`` leave in cast shadow have ``upper`` -inf (out at every value scored), clipped ones 0. Returns
-    (C, N)."""
+    (..., N)."""
     from concurrent.futures import ThreadPoolExecutor
 
     step = 8192
@@ -998,7 +989,7 @@ def _costs_parallel(torch, full: _Problem, normal, base, rough, metal, lights, s
     with _one_thread(torch) as threads:
         with ThreadPoolExecutor(_workers(threads), initializer=torch.set_num_threads, initargs=(1,)) as pool:
             out = list(pool.map(cost, parts))
-    return np.concatenate(out, axis=1)
+    return np.concatenate(out, axis=-1)
 
 
 def _plane_normals(mask: np.ndarray) -> np.ndarray:

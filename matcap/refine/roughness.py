@@ -86,9 +86,7 @@ def grid_costs(torch, obs, upper, pos, normal, metal, lights, grid, noise: float
     """
     out = np.empty((len(grid), obs.shape[1]), np.float32)
     with torch.no_grad():
-        wo, irr = lights.incident(pos)
-        used = (upper > 0).to(obs.dtype)  # a clipped observation bounds the model only from below
-        scale = (noise * obs.mean(dim=(0, 2))).clamp(min=1e-4)[None, :, None]
+        wo, irr, used, scale = _score_terms(obs, upper, pos, lights, noise)
         q = torch.nonzero(metal > 0.1).flatten()  # the pixels with some metallic: tried without it too
         for g, r in enumerate(grid):
             rv = torch.full_like(metal, float(r))
@@ -109,32 +107,50 @@ def base_solution(pos, normal, rough, metal, lights, obs, used):
     from matcap.refine.model import shade_base_linear
 
     wo, irr = lights.incident(pos)
-    p0, a = shade_base_linear(normal, rough, metal, wo, irr, lights.sh)
+    return _least_squares_base(*shade_base_linear(normal, rough, metal, wo, irr, lights.sh), obs, used)
+
+
+def value_scores(torch, obs, upper, pos, normal, values, lights, noise: float) -> np.ndarray:
+    """(V, 4, N) float32: for N pixels at each of V (roughness, metallic) pairs ``values``, a sequence of ((N,),
+    (N,)) torch, the data cost of :func:`grid_costs` (row 0) and the least-squares base colour it is scored with,
+    before clipping (rows 1-3); the other arguments as there."""
+    out = np.empty((len(values), 4, obs.shape[1]), np.float32)
+    with torch.no_grad():
+        wo, irr, used, scale = _score_terms(obs, upper, pos, lights, noise)
+        for i, (r, m) in enumerate(values):
+            cost, base = _fit(normal, r, m, wo, irr, lights.sh, obs, upper, used, scale)
+            out[i, 0], out[i, 1:] = cost.cpu().numpy(), base.T.cpu().numpy()
+    return out
+
+
+def _score_terms(obs, upper, pos, lights, noise: float):
+    """What every score of N pixels shares: the lights' (wo, irradiance) at ``pos``, the observations (K, N, 3)
+    that set the base colour (``upper`` above 0: not clipped, not left out) and each pixel's residual scale
+    (``noise`` times its mean observation)."""
+    wo, irr = lights.incident(pos)
+    used = (upper > 0).to(obs.dtype)  # a clipped observation bounds the model only from below
+    scale = (noise * obs.mean(dim=(0, 2))).clamp(min=1e-4)[None, :, None]
+    return wo, irr, used, scale
+
+
+def _least_squares_base(p0, a, obs, used):
+    """(N, 3) each channel's least-squares base colour b of ``obs`` ~ ``p0 + b a`` (K, N, 3) where ``used``."""
     return (used * a * (obs - p0)).sum(0) / (used * a * a).sum(0).clamp(min=1e-12)
 
 
-def value_costs(torch, obs, upper, pos, normal, values, lights, noise: float) -> np.ndarray:
-    """(V, N) float32: the data cost of :func:`grid_costs` of N pixels at each of V (roughness, metallic) pairs
-    ``values``, a sequence of ((N,), (N,)) torch, the base colour solved in closed form; the other arguments as
-    there."""
-    out = np.empty((len(values), obs.shape[1]), np.float32)
-    with torch.no_grad():
-        wo, irr = lights.incident(pos)
-        used = (upper > 0).to(obs.dtype)
-        scale = (noise * obs.mean(dim=(0, 2))).clamp(min=1e-4)[None, :, None]
-        for i, (r, m) in enumerate(values):
-            out[i] = _cost(normal, r, m, wo, irr, lights.sh, obs, upper, used, scale).cpu().numpy()
-    return out
+def _fit(nrm, rv, m, wo, irr, sh, o, up, used, scale):
+    """(cost (N,), base (N, 3) before clipping): :func:`_cost` and the least-squares base colour it used."""
+    from matcap.refine.model import shade_base_linear
+
+    p0, a = shade_base_linear(nrm, rv, m, wo, irr, sh)
+    base = _least_squares_base(p0, a, o, used)
+    res = _zero_above(p0 + base.clamp(0.0, 1.0)[None] * a - o, up)
+    return (res / scale).square().log1p().sum(dim=(0, 2)), base
 
 
 def _cost(nrm, rv, m, wo, irr, sh, o, up, used, scale):
     """(N,) the cost of :func:`grid_costs` at roughness ``rv`` and metallic ``m`` (N,), the base colour solved."""
-    from matcap.refine.model import shade_base_linear
-
-    p0, a = shade_base_linear(nrm, rv, m, wo, irr, sh)
-    b = ((used * a * (o - p0)).sum(0) / (used * a * a).sum(0).clamp(min=1e-12)).clamp(0.0, 1.0)
-    res = _zero_above(p0 + b[None] * a - o, up)
-    return (res / scale).square().log1p().sum(dim=(0, 2))
+    return _fit(nrm, rv, m, wo, irr, sh, o, up, used, scale)[0]
 
 
 def _zero_above(res, up):
@@ -148,9 +164,7 @@ def metal_costs(torch, obs, upper, pos, normal, rough, lights, grid, noise: floa
     colour solved in closed form; the other arguments and the cost as in :func:`grid_costs`."""
     out = np.full((4, obs.shape[1]), np.inf, np.float32)
     with torch.no_grad():
-        wo, irr = lights.incident(pos)
-        used = (upper > 0).to(obs.dtype)
-        scale = (noise * obs.mean(dim=(0, 2))).clamp(min=1e-4)[None, :, None]
+        wo, irr, used, scale = _score_terms(obs, upper, pos, lights, noise)
         ones = torch.ones(obs.shape[1], dtype=obs.dtype, device=obs.device)
         for i, m in enumerate((0.0, 1.0)):
             out[i] = _cost(normal, rough, ones * m, wo, irr, lights.sh, obs, upper, used, scale).cpu().numpy()

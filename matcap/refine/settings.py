@@ -253,8 +253,8 @@ class RoughnessSettings:
     the networks') by more than this (such a pixel keeps the normal the per-pixel solve gave it)."""
     pool: int = 3
     """After the last solve, each pixel's roughness and metallic take the median of this many pixels' square window
-    around it (the mask's pixels only; its base colour rescaled to match, its normal kept); 1: each pixel keeps its
-    own."""
+    around it where its photos allow them (the mask's pixels only; its base colour shifted to match, its normal
+    kept); 1: each pixel keeps its own."""
 
 
 @dataclass
