@@ -302,7 +302,7 @@ def test_pooling_takes_the_neighbourhoods_roughness_where_the_photos_allow_it():
     """A dome of one grey material (roughness 0.6) under 12 distant lights, rendered with the fit's own model. A
     third of its pixels (three in every 3 x 3 window) start from a wrong roughness (0.3 or 0.9) with the base colour
     that fits it, and one pixel, whose normal is the half vector of a light (a highlight), is truly glossy (0.1).
-    After pooling the wrong values are the neighbourhood's 0.6, their base colour rescaled so that the photos are
+    After pooling the wrong values are the neighbourhood's 0.6, their base colour shifted so that the photos are
     explained about as well as where the start was right, and the glossy pixel, whose highlight rules 0.6 out,
     keeps its own."""
     import torch
