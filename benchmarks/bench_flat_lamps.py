@@ -6,8 +6,10 @@
 The swatches are rendered as ``benchmarks/flat_check.py`` renders them (its ``near`` condition: point lamps 1-3
 sample widths away). ``--old REV``: ``matcap/refine/flat.py`` of that git revision, imported beside this one (the rest
 of matcap is this checkout's), timed alternately with this one on the same photos. One torch thread. Columns: wall
-seconds of ``plane_lamps``, the median and largest lamp position error (in lamp distances from the sample's centre)
-and whether the falloff placed the lamps.
+seconds of ``plane_lamps``, the median and largest lamp position error (in lamp distances from the sample's centre),
+the median and largest angle between the found and true directions from the centre, whether the falloff placed the
+lamps, and which step placed them (``plane``: the plane under the Principled BSDF; ``free normals``: near-light
+photometric stereo).
 """
 from __future__ import annotations
 
@@ -53,8 +55,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     codes = [("this", new)] + ([(args.old, _old_module(args.old))] if args.old else [])
-    print("| swatch | code | seconds | position error median / max | lamps placed |")
-    print("|---|---|---:|---|---|")
+    print("| swatch | code | seconds | position error median / max | angle median / max (deg) | lamps placed "
+          "| placed by |")
+    print("|---|---|---:|---|---|---|---|")
     for name in args.sets.split(","):
         maps, _ = fc.load_sample(fc.TEXTURES / name, args.size)
         lights = fc.make_lights("near", 16, 0)  # as flat_check.py draws them
@@ -67,8 +70,11 @@ def main(argv=None) -> int:
                 lamps = module.plane_lamps(photos, mask)
                 secs = time.perf_counter() - t0
                 err = np.linalg.norm(lamps.positions - truth, axis=1) / np.linalg.norm(truth - lamps.centre, axis=1)
-                print(f"| {name} | {label} | {secs:.1f} | {np.median(err):.3f} / {err.max():.3f} | {lamps.near} |",
-                      flush=True)
+                toward = (truth - lamps.centre) / np.linalg.norm(truth - lamps.centre, axis=1, keepdims=True)
+                ang = np.degrees(np.arccos(np.clip((lamps.directions * toward).sum(1), -1.0, 1.0)))
+                by = ("plane" if getattr(lamps, "plane_placed", False) else "free normals") if lamps.near else "-"
+                print(f"| {name} | {label} | {secs:.1f} | {np.median(err):.3f} / {err.max():.3f} | "
+                      f"{np.median(ang):.1f} / {ang.max():.1f} | {lamps.near} | {by} |", flush=True)
     return 0
 
 

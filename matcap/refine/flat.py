@@ -3,8 +3,9 @@
 A plane's mean normal is the camera axis, so a lamp a few sample widths away shows itself in the photos' falloff:
 photo k's irradiance at plane point x is ``I_k * h_k / |p_k - x|^3`` (a lamp at ``p_k``, ``h_k`` its height above
 the plane), and the ratio of two photos at one pixel cancels the albedo. :func:`plane_lamps` fits every lamp's
-position and relative intensity to those ratios (log domain, robust, the per-pixel albedo profiled out).
-From far away the falloff is flat and tells nothing (:attr:`PlaneLamps.near` is false): the photos of one plane
+position and relative intensity to those ratios (log domain, robust, the per-pixel albedo profiled out), then to
+the photos under the fit's own Principled BSDF where the plane explains them that way (its highlights place the
+lamps). From far away the falloff is flat and tells nothing (:attr:`PlaneLamps.near` is false): the photos of one plane
 under distant lights cannot tell those lights apart, so :func:`flat_lights` returns none and the lights must be
 given (a light file, a mirror ball).
 
@@ -14,6 +15,7 @@ plane z = 0, x from -1 to 1 across the image), as ``lights.json`` stores point l
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,7 +90,9 @@ class PlaneLamps:
     (3,) the mask's centroid on the plane; width: the sample's width (world units: the longer side of the mask's
     bounding box); residual: median absolute relative residual of the near-light photometric stereo (0.01: 1 %);
     residual_distant: the same with every lamp taken as distant (a directional light): where it is not larger,
-    the falloff did not place the lamps (:attr:`near`)."""
+    the falloff did not place the lamps (:attr:`near`); residual_plane: the same (on the same copy) of the plane
+    under the Principled BSDF (step 3 of :func:`plane_lamps`; NaN where near lamps were not found), whose lamps these
+    are where :attr:`plane_placed`; roughness: that plane's one roughness."""
 
     positions: np.ndarray
     directions: np.ndarray
@@ -98,12 +102,19 @@ class PlaneLamps:
     width: float
     residual: float
     residual_distant: float
+    residual_plane: float
+    roughness: float
 
     @property
     def near(self) -> bool:
         """Whether the falloff placed the lamps: distant lamps leave a residual of at least ``NEAR_FLOOR`` and the
         lamps' distances cut it to at most ``NEAR_GAIN`` of that."""
-        return self.residual_distant >= NEAR_FLOOR and self.residual <= NEAR_GAIN * self.residual_distant
+        return _placed(self.residual, self.residual_distant)
+
+    @property
+    def plane_placed(self) -> bool:
+        """Whether the Principled plane placed the lamps (its residual at most :data:`PLANE_GAIN` of step 2's)."""
+        return bool(self.residual_plane <= PLANE_GAIN * self.residual)
 
     @property
     def distance_widths(self) -> np.ndarray:
@@ -262,8 +273,171 @@ def _varpro(torch, lamp, vectors, y_np, w_np, cauchy: float, steps: int):
     return theta.reshape(k_count, 5), float(e.abs().median()), solve_b(theta)
 
 
+def _plane_principled_model(torch, pos, y_lin, k_count: int):
+    """Photo k at plane point x under the fit's own Principled BSDF, normal +z, dielectric (metallic 0), one
+    roughness for the whole sample: ``y_k(x) = c_k(x) + a(x) d_k(x)`` with ``c_k`` the specular part (the
+    Principled default's, F0 0.04, as the fit takes it) and ``d_k`` the diffuse part per unit base colour
+    (:func:`matcap.refine.model.shade_base_linear`) of a point lamp at ``p_k`` of intensity ``I_k`` (irradiance
+    ``I_k / |p_k - x|^2``), plus a room light ``A_k`` on the diffuse part, and ``a(x)`` each pixel's base colour
+    solved by weighted least squares for them. C independent sets of lamps and roughness at once. pos (P, 3) plane
+    points; y_lin (K, P) the observations. Returns (residual(theta (C, K, 5), rho (C,), weight (C, K, P)) -> ((C, K,
+    P) relative residuals, a (C, P)), jacobian(theta, rho, weight) -> (C, K * P, K * 5 + 1): each lamp moves its
+    own photo and every base colour, the BSDF's derivatives by forward-mode autodiff, their way through the base
+    colours' least-squares solve in closed form; rho = logit(roughness))."""
+    from matcap.refine.model import shade_base_linear
+
+    n_pix = pos.shape[0]
+    no_sh = torch.zeros(1, 9, 3, dtype=torch.float64)
+
+    def parts(theta, rho):  # (C, K, 5) lamps (x, y, log height, log intensity, log room light) -> c, d (C, K, P)
+        c_count = theta.shape[0]
+        t = theta.reshape(-1, 5)
+        q = torch.cat([t[:, None, :2] - pos[None, :, :2], t[:, 2].exp()[:, None, None].expand(-1, n_pix, 1)], -1)
+        r2 = (q * q).sum(-1)
+        count = q.shape[0] * n_pix  # every lamp and pixel as one pixel of one light (a roughness per combination)
+        normal = torch.zeros(count, 3, dtype=torch.float64)
+        normal[:, 2] = 1.0
+        rough = torch.sigmoid(rho)[:, None].expand(c_count, k_count * n_pix).reshape(-1)
+        irradiance = (t[:, 3].exp()[:, None] / r2).reshape(1, count, 1).expand(1, count, 3)
+        const, per_base = shade_base_linear(normal, rough, torch.zeros(count, dtype=torch.float64),
+                                            (q * r2.rsqrt()[..., None]).reshape(1, count, 3), irradiance, no_sh)
+        shape = (c_count, k_count, n_pix)
+        return const[0, :, 0].reshape(shape), per_base[0, :, 0].reshape(shape) + t[:, 4].exp().reshape(
+            c_count, k_count, 1)
+
+    def derivatives(theta, rho):  # -> dc, dd (6, C, K, P): by each lamp's 5 parameters, then by rho
+        eye = torch.eye(6, dtype=torch.float64)
+        tangents = eye[:, None, None, :5].expand(6, *theta.shape), eye[:, 5, None].expand(6, *rho.shape)
+        return torch.func.vmap(lambda tt, tr: torch.func.jvp(parts, (theta, rho), (tt, tr))[1])(*tangents)
+
+    def base_of(const, per, weight):
+        wl = weight / y_lin ** 2
+        return ((wl * (y_lin - const) * per).sum(1) / (wl * per * per).sum(1).clamp(min=1e-30)).clamp(min=0.0)
+
+    def residual(theta, rho, weight):
+        const, per = parts(theta, rho)
+        a = base_of(const, per, weight)
+        return weight.sqrt() * (y_lin - const - a[:, None] * per) / y_lin, a
+
+    def jacobian(theta, rho, weight):
+        # r_jx = s_jx (y_jx - c_jx - a_x d_jx) / y_jx; lamp k moves c_k, d_k and a_x = N_x / D_x through
+        # dN_x = wl_kx ((y_kx - c_kx) dd_kx - d_kx dc_kx), dD_x = 2 wl_kx d_kx dd_kx (where a_x > 0)
+        c_count = theta.shape[0]
+        const, per = parts(theta, rho)
+        a = base_of(const, per, weight)
+        dc, dd = (d.permute(1, 2, 3, 0) for d in derivatives(theta, rho))  # (C, K, P, 6)
+        wl = weight / y_lin ** 2
+        den = (wl * per * per).sum(1).clamp(min=1e-30)
+        free = (a > 0).to(a.dtype)
+        g = wl[..., None] * ((y_lin - const)[..., None] * dd - per[..., None] * dc
+                             - 2.0 * a[:, None, :, None] * per[..., None] * dd)  # (C, K, P, 6)
+        da = g / den[:, None, :, None] * free[:, None, :, None]  # da_x / d(parameter of lamp k), and of rho
+        da_rho = da[..., 5].sum(1)  # (C, P): rho moves every photo
+        s = -(weight.sqrt() / y_lin)
+        own = s[..., None] * (dc + a[:, None, :, None] * dd)  # (C, K, P, 6): photo k by its own lamp (and rho)
+        jac = (s * per)[..., None, None] * da[..., :5].permute(0, 2, 1, 3)[:, None]  # (C, K, P, K, 5)
+        jac = jac + own[:, :, :, None, :5] * torch.eye(k_count, dtype=torch.float64)[None, :, None, :, None]
+        j_rho = own[..., 5] + s * per * da_rho[:, None]
+        return torch.cat([jac.reshape(c_count, -1, k_count * 5), j_rho.reshape(c_count, -1, 1)], -1)
+
+    return residual, jacobian
+
+
+def _plane_principled(torch, lamps, rough, pos, y_np, w_np, cauchy: float, steps: int,
+                      hold_roughness: bool = False):
+    """Levenberg-Marquardt on C independent starts at once, each the lamps (K, 5: x, y, log height, log intensity,
+    log room light) and one roughness under :func:`_plane_principled_model`, relative residuals under a Cauchy loss
+    of scale ``cauchy`` (by reweighting); ``hold_roughness``: the roughness stays. lamps (C, K, 5), rough (C,) start
+    roughnesses. Returns (lamps (C, K, 5), logit(roughness) (C,), the mean Cauchy loss per weighted observation (C,),
+    infinite where it is not finite)."""
+    c_count, k_count = lamps.shape[:2]
+    y_lin = torch.from_numpy(np.exp(y_np))
+    w_obs = torch.from_numpy(w_np)
+    residual, jacobian = _plane_principled_model(torch, pos, y_lin, k_count)
+    scale = w_obs.sqrt().clamp(min=1e-9)
+    w_all = w_obs.expand(c_count, -1, -1)
+    theta = lamps.clone()
+    rough = torch.as_tensor(rough, dtype=torch.float64)
+    rho = torch.log(rough / (1.0 - rough))
+    lam = torch.full((c_count,), 1e-3, dtype=torch.float64)
+    done = torch.zeros(c_count, dtype=torch.bool)
+    for _ in range(steps):
+        irls = w_obs / (1.0 + (residual(theta, rho, w_all)[0] / scale / cauchy) ** 2)
+        r = residual(theta, rho, irls)[0].reshape(c_count, -1)
+        jac = jacobian(theta, rho, irls)  # (C, K * P, K * 5 + 1)
+        if hold_roughness:
+            jac[..., -1] = 0.0
+        jtj, jtr = jac.transpose(1, 2) @ jac, (jac.transpose(1, 2) @ r[..., None])[..., 0]
+        cost = (r * r).sum(1)
+        lost = ~(torch.isfinite(jtj).flatten(1).all(1) & torch.isfinite(jtr).all(1) & torch.isfinite(cost))
+        done |= lost  # a start that ran off to infinities stops there (its loss says so)
+        jtj = torch.where(lost[:, None, None], torch.eye(jtj.shape[1], dtype=jtj.dtype), jtj)
+        jtr = torch.where(lost[:, None], 0.0, jtr)
+        damp = lam[:, None, None] * torch.diag_embed(torch.diagonal(jtj, dim1=1, dim2=2).clamp(min=1e-12))
+        step = torch.linalg.solve(jtj + damp, -jtr[..., None])[..., 0]
+        trial_theta, trial_rho = theta + step[:, :-1].reshape(c_count, k_count, 5), rho + step[:, -1]
+        trial = residual(trial_theta, trial_rho, irls)[0].reshape(c_count, -1)
+        new_cost = (trial * trial).sum(1)
+        better = torch.isfinite(new_cost) & (new_cost < cost) & ~done
+        theta = torch.where(better[:, None, None], trial_theta, theta)
+        rho = torch.where(better, trial_rho, rho)
+        lam = torch.where(better, (lam / 3.0).clamp(min=1e-9), lam * 4.0)
+        # a start is done where no step is left that lowers its loss noticeably
+        done |= (lam >= 1e9) | (better & (cost - new_cost < 1e-7 * cost))
+        if bool(done.all()):
+            break
+    e = residual(theta, rho, w_all)[0] / scale
+    loss = (w_obs * torch.log1p((e / cauchy) ** 2)).sum((1, 2)) / w_obs.sum().clamp(min=1.0)
+    return theta, rho, torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
+
+
+def _principled_lamps(torch, lum, mask, lamp, centre, width: float, side: int, widths: tuple[float, ...],
+                      roughness: tuple[float, ...], cauchy: float, steps: int, check_side: int):
+    """Step 3 of :func:`plane_lamps`: lum (K, H, W) the photos' dominant channel, lamp (K, 5) step 2's lamps.
+
+    Levenberg-Marquardt (:func:`_plane_principled`) from step 2's lamps and from their feet (x, y) at ``widths``
+    sample widths from the centre, each with every start roughness of ``roughness`` held for ``steps`` steps (a
+    roughness free from the start runs off to 1, where a glossy sample's highlights pass for outliers), then free
+    for ``2 * steps``. Returns (lamps (K, 5), roughness) of the start that ends with the lowest loss, and their
+    median absolute relative residual on a copy whose longer side is ``check_side`` (base colours re-solved
+    there)."""
+    from matcap.refine.model import plane_positions
+
+    def copy(longer: int):
+        small, keep = _small(lum, mask, longer)
+        y_np, w_np = _log_obs(small, keep)
+        rows, cols = np.nonzero(keep)
+        return plane_positions(torch.from_numpy(rows), torch.from_numpy(cols), *keep.shape).double(), y_np, w_np
+
+    pos, y_np, w_np = copy(side)
+    starts = [lamp.clone()]
+    level = torch.from_numpy(np.median(np.exp(y_np), axis=1))
+    for sw in widths:
+        dist = sw * width
+        start = lamp.clone()
+        off2 = ((start[:, :2] - centre[:2]) ** 2).sum(1)
+        start[:, 2] = 0.5 * torch.log(torch.clamp(dist ** 2 - off2, min=(0.3 * dist) ** 2))
+        start[:, 3] = torch.log(4.0 * level * dist ** 2)  # a mid-grey plane's level at that distance
+        starts.append(start)
+    for start in starts:
+        start[:, 4] = start[:, 3] - 8.0  # a faint room light
+    lamps = torch.stack([start for start in starts for _ in roughness])
+    rough = torch.tensor([r0 for _ in starts for r0 in roughness], dtype=torch.float64)
+    held = _plane_principled(torch, lamps, rough, pos, y_np, w_np, cauchy, steps, hold_roughness=True)
+    lamps, rho, loss = _plane_principled(torch, held[0], rough, pos, y_np, w_np, cauchy, 2 * steps)
+    best = int(loss.argmin())
+    lamp, rho = lamps[best], rho[best]
+    pos, y_np, w_np = copy(check_side)
+    w_obs = torch.from_numpy(w_np)
+    residual = _plane_principled_model(torch, pos, torch.from_numpy(np.exp(y_np)), lamp.shape[0])[0]
+    e = residual(lamp[None], rho[None], w_obs[None])[0][0] / w_obs.sqrt().clamp(min=1e-9)
+    return lamp, float(torch.sigmoid(rho)), float(e[w_obs > 0].abs().median())
+
+
 def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, cauchy: float = 0.05,
-                starts_widths: tuple[float, ...] = (0.75, 1.5, 3.0, 6.0)) -> PlaneLamps:
+                starts_widths: tuple[float, ...] = (0.75, 1.5, 3.0, 6.0), principled_side: int = 16,
+                principled_widths: tuple[float, ...] = (3.0,),
+                principled_roughness: tuple[float, ...] = (0.15, 0.5)) -> PlaneLamps:
     """The lamp of every photo of a flat sample, from the falloff of its light over the plane.
 
     images: K (H, W, 3) linear RGB photos (any common scale); mask: (H, W) bool, the sample. Fitted on a copy whose
@@ -280,6 +454,16 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
        the surface's small tilts, which shade every photo differently, are no longer taken for falloff). At most
        ``4 * steps`` steps; the residuals are relative, so every photo weighs alike. The same with every lamp
        distant gives ``residual_distant``: distant lamps leave no falloff to place them.
+    3. The plane under the fit's own Principled BSDF (:func:`_plane_principled`, on a copy whose longer side is
+       ``principled_side``): normals +z, each pixel's base colour solved for the lamps, one roughness, so that a
+       glossy sample's highlight places its lamp and the diffuse falloff is Burley's, not Lambert's. (Step 2's free
+       normals leave the lamps' elevations weakly held: a tilt of every normal and a lower lamp explain a
+       Lambertian falloff about alike.) Started from step 2's lamps and from their feet at ``principled_widths``
+       sample widths, each at every roughness of ``principled_roughness`` (:func:`_principled_lamps`); the start
+       that ends with the lowest loss gives the positions where the plane explains the
+       photos about as closely as step 2's free normals do (median absolute relative residual on step 2's copy at
+       most :data:`PLANE_GAIN` times step 2's); elsewhere (a sample whose tilts shade it visibly) step 2's lamps
+       stay.
     """
     import torch
 
@@ -355,13 +539,21 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
     # ---- 2. near-light photometric stereo: the lamps with every pixel's albedo times normal solved for them
     lamp, resid, _ = _varpro(torch, lamp, vectors, y_np, w_np, cauchy, 4 * steps)
     _, resid_distant, _ = _varpro(torch, lamp, lambda t: vectors(t, distant=True), y_np, w_np, cauchy, 4 * steps)
+    # ---- 3. the plane under the Principled BSDF (where the falloff placed the lamps at all)
+    rough, resid_plane = math.nan, math.nan
+    if _placed(resid, resid_distant):
+        plane, rough, resid_plane = _principled_lamps(torch, lum, mask, lamp, centre, width, principled_side,
+                                                      principled_widths, principled_roughness, cauchy,
+                                                      2 * steps, side)
+        if resid_plane <= PLANE_GAIN * resid:  # PlaneLamps.plane_placed
+            lamp = plane
     positions = torch.cat([lamp[:, :2], lamp[:, 2:3].exp()], 1)
     rel = positions - centre
     dist = rel.norm(dim=1)
     irr = torch.exp(lamp[:, 3]) / dist ** 2  # at the centre, on a surface facing the lamp (relative)
     irr = irr / irr.mean()
     return PlaneLamps(positions.numpy(), (rel / dist[:, None]).numpy(), dist.numpy(), irr.numpy(), centre.numpy(),
-                      width, resid, resid_distant)
+                      width, resid, resid_distant, resid_plane, rough)
 
 
 
@@ -370,6 +562,16 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
 NEAR_GAIN = 0.7
 #: ... and that residual (relative RMS) is at least this: a falloff that shows above the photos' noise.
 NEAR_FLOOR = 0.005
+
+
+#: Step 3 of :func:`plane_lamps` (the plane under the Principled BSDF, normals +z) places the lamps where its
+#: residual is at most this multiple of step 2's, whose free normals explain a visibly tilted sample's shading.
+PLANE_GAIN = 1.3
+
+
+def _placed(residual: float, residual_distant: float) -> bool:
+    """Whether near lamps explain the photos clearly better than distant ones (:attr:`PlaneLamps.near`)."""
+    return residual_distant >= NEAR_FLOOR and residual <= NEAR_GAIN * residual_distant
 
 
 def flat_lights(images, mask: np.ndarray):
@@ -385,7 +587,10 @@ def flat_lights(images, mask: np.ndarray):
     if not lamps.near:
         return None, record
     record.update({"distance_widths_median": round(float(np.median(widths)), 3),
-                   "distance_widths": [round(float(v), 3) for v in widths], "sample_width": round(lamps.width, 5)})
+                   "distance_widths": [round(float(v), 3) for v in widths], "sample_width": round(lamps.width, 5),
+                   "placed_by": "the plane under the Principled BSDF" if lamps.plane_placed else
+                   "near-light photometric stereo", "residual_plane": round(lamps.residual_plane, 5),
+                   "plane_roughness": round(lamps.roughness, 3)})
     known = KnownLights(lamps.directions.astype(np.float64), None, "estimated", "", "order",
                         lamps.positions.astype(np.float64))
     return known, record
