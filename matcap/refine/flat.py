@@ -5,8 +5,8 @@ photo k's irradiance at plane point x is ``I_k * h_k / |p_k - x|^3`` (a lamp at 
 the plane), and the ratio of two photos at one pixel cancels the albedo. :func:`plane_lamps` fits every lamp's
 position and relative intensity to those ratios (log domain, robust, the per-pixel albedo profiled out), then to
 the photos under the fit's own Principled BSDF where the plane explains them that way (its highlights place the
-lamps). From far away the falloff is flat and tells nothing (:attr:`PlaneLamps.near` is false): the photos of one plane
-under distant lights cannot tell those lights apart, so :func:`flat_lights` returns none and the lights must be
+lamps). From far away the falloff is flat and tells nothing (:attr:`PlaneLamps.near` is false): the photos of one
+plane under distant lights cannot tell those lights apart, so :func:`flat_lights` returns none and the lights must be
 given (a light file, a mirror ball).
 
 :func:`check_flat` says whether a capture looks like a flat sample (the networks' normals close to the camera axis
@@ -114,7 +114,7 @@ class PlaneLamps:
     @property
     def plane_placed(self) -> bool:
         """Whether the Principled plane placed the lamps (its residual at most :data:`PLANE_GAIN` of step 2's)."""
-        return bool(self.residual_plane <= PLANE_GAIN * self.residual)
+        return _plane_better(self.residual_plane, self.residual)
 
     @property
     def distance_widths(self) -> np.ndarray:
@@ -460,10 +460,9 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
        normals leave the lamps' elevations weakly held: a tilt of every normal and a lower lamp explain a
        Lambertian falloff about alike.) Started from step 2's lamps and from their feet at ``principled_widths``
        sample widths, each at every roughness of ``principled_roughness`` (:func:`_principled_lamps`); the start
-       that ends with the lowest loss gives the positions where the plane explains the
-       photos about as closely as step 2's free normals do (median absolute relative residual on step 2's copy at
-       most :data:`PLANE_GAIN` times step 2's); elsewhere (a sample whose tilts shade it visibly) step 2's lamps
-       stay.
+       that ends with the lowest loss gives the positions where the plane explains the photos about as closely as
+       step 2's free normals do (median absolute relative residual on step 2's copy at most :data:`PLANE_GAIN`
+       times step 2's); elsewhere (a sample whose tilts shade it visibly) step 2's lamps stay.
     """
     import torch
 
@@ -545,7 +544,7 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
         plane, rough, resid_plane = _principled_lamps(torch, lum, mask, lamp, centre, width, principled_side,
                                                       principled_widths, principled_roughness, cauchy,
                                                       2 * steps, side)
-        if resid_plane <= PLANE_GAIN * resid:  # PlaneLamps.plane_placed
+        if _plane_better(resid_plane, resid):
             lamp = plane
     positions = torch.cat([lamp[:, :2], lamp[:, 2:3].exp()], 1)
     rel = positions - centre
@@ -567,6 +566,12 @@ NEAR_FLOOR = 0.005
 #: Step 3 of :func:`plane_lamps` (the plane under the Principled BSDF, normals +z) places the lamps where its
 #: residual is at most this multiple of step 2's, whose free normals explain a visibly tilted sample's shading.
 PLANE_GAIN = 1.3
+
+
+def _plane_better(residual_plane: float, residual: float) -> bool:
+    """Whether step 3's lamps replace step 2's (:attr:`PlaneLamps.plane_placed`; false where step 3 did not run:
+    NaN)."""
+    return bool(residual_plane <= PLANE_GAIN * residual)
 
 
 def _placed(residual: float, residual_distant: float) -> bool:
