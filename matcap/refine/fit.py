@@ -537,12 +537,13 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     ambient shared by every photo are fitted, first by least squares, then jointly with a subsample's maps under
     the Principled model (:func:`_fit_intensities`). On a flat sample whose given lights come without intensities
     the subsample's mean normal is held to the camera axis (``lights.flat_mean_held``) and the ambient as given; on
-    one under point lamps with relative intensities the photos set their overall power, one factor on the
-    networks' base colour solved with them (``lights.flat_level_free``). Distant lights whose intensities the file
-    gives are taken as they are, at the least-squares scale, with the file's ambient (a ``lights.json``'s ``sh``;
-    else none) at that scale; the start normals come from semi-calibrated Lambertian least squares
-    (:func:`known_irradiance`); (2) the per-pixel solve (:func:`_solve_maps`) from calibrated photometric-stereo
-    normals, then the roughness stage (:func:`_roughness_stage`); (3) outputs. With the lights known there is no
+    one whose lights come with relative intensities the photos set their overall power, one factor on the
+    networks' base colour solved with them (``lights.flat_level_free``; under distant lights the ambient held as
+    given). On an object, distant lights whose intensities the file gives are taken as they are, at the
+    least-squares scale, with the file's ambient (a ``lights.json``'s ``sh``; else none) at that scale; the start
+    normals come from semi-calibrated Lambertian least squares (:func:`known_irradiance`); (2) the per-pixel solve
+    (:func:`_solve_maps`) from calibrated photometric-stereo normals, then the roughness stage
+    (:func:`_roughness_stage`); (3) outputs. With the lights known there is no
     bas-relief family to choose from, so nothing is gated: the maps are always the fitted ones. ``flat``: what
     :func:`matcap.refine.flat.flat_lights` found (empty where the lights were given), recorded in fit.json as
     ``flat``.
@@ -616,13 +617,16 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     # a flat sample's given lights without intensities: the sample's mean normal held (found lamps have their wide
     # tilts taken out after the per-pixel solve instead, pixels.found_lamps_detail)
     tilt_held = flat is not None and given is None and known.source != "estimated" and s.lights.flat_mean_held
-    # distant lights whose intensities are given are taken as they are; the others are fitted
-    fitted = (inv_distance is not None or given is None) and s.lights.known_iters > 0
     # a flat sample whose lights' ratios are known: the photos set their overall power (each photo's own intensity
     # fitted leaves too much freedom for that)
-    level_free = fitted and flat is not None and given is not None and s.lights.flat_level_free
-    # nor can a plane's photos tell a constant ambient from each photo's own intensity: there it stays as given
-    ambient_free = not (flat is not None and given is None)
+    level_free = flat is not None and given is not None and s.lights.flat_level_free
+    # distant lights whose intensities are given are taken as they are, but for that power on a flat sample; the
+    # others are fitted
+    fitted = (inv_distance is not None or given is None or level_free) and s.lights.known_iters > 0
+    level_free = level_free and fitted
+    # nor can a plane's photos tell a constant ambient from each photo's own intensity, or, under distant lights
+    # (which light it evenly), from their overall power: there it stays as given
+    ambient_free = not (flat is not None and (given is None or inv_distance is None))
     ambient = ("none" if s.model.ambient == "none" else "fitted" if fitted and ambient_free
                else "given" if known.ambient is not None else "none")  # what fit.json says of it
     light_iters, level = 0, 1.0

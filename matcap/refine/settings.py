@@ -94,9 +94,9 @@ class LightStageSettings:
     light seen by a glossy surface changes with the normal), 2 all (they bend to fit cast shadows and
     interreflections); the higher orders stay as given (a lights.json's ``sh``) or 0."""
     flat_level_free: bool = True
-    """A flat sample whose lamps' relative intensities are known (a light file's point lamps with intensities): the
-    base colour's prior holds the networks' pattern only, not its level (one factor on it is solved with the
-    lights), so that the photos set the lights' overall power."""
+    """A flat sample whose lights' relative intensities are known (a light file's lamps or distant lights with
+    intensities): the base colour's prior holds the networks' pattern only, not its level (one factor on it is solved
+    with the lights), so that the photos set the lights' overall power."""
     flat_mean_held: bool = True
     """A flat sample whose given lights come without intensities: the light fit's pixels keep a mean normal
     gradient (x and y of ``n / n_z``) of 0. The sample's mean normal is the camera axis; without it a photo's
