@@ -739,12 +739,12 @@ def capture(
     calibration = ball_region = None
     if ball is not None:
         known, calibration, ball_region = ball_lights(folder, ball, linear, contrast, max_side, max_images, seed)
-    colour_decision, cap, maps = None, None, None
+    colour_decision, cap, maps, lamps = None, None, None, None
     if refine and linear is None:  # neither --linear nor --srgb: let the fit decide for 8-bit photos
         t0 = time.perf_counter()
-        linear, colour_decision, cap, maps = decide_colour(folder, mask, max_side, refine_settings,
-                                                           dict(estimate_kwargs, max_images=max_images), known,
-                                                           exclude=ball_region, flat=flat)
+        linear, colour_decision, cap, maps, lamps = decide_colour(folder, mask, max_side, refine_settings,
+                                                                  dict(estimate_kwargs, max_images=max_images),
+                                                                  known, exclude=ball_region, flat=flat)
         if colour_decision is not None:
             colour_decision["seconds"] = round(time.perf_counter() - t0, 3)
     linear = bool(linear)  # None without the fit: sRGB, the default
@@ -770,11 +770,12 @@ def capture(
     refine_writer = None
     if refine:
         used_lights = None if known is None else known.subset(maps.meta["images_used"])
+        found = None if lamps is None or not flat else lamps.of(maps.meta["images_used"], maps.mask)
         maps, refine_writer = refine_maps(maps, [cap.images[i] for i in maps.meta["images_used"]], used,
                                           cap.colour, refine_settings, constants,
                                           progress=bool(estimate_kwargs.get("progress")), seed=seed,
                                           device=estimate_kwargs.get("device", "cpu"), lights=used_lights,
-                                          flat=flat, on_fit=on_fit)
+                                          flat=flat, found_lamps=found, on_fit=on_fit)
     maps.meta["images_used"] = [cap.picked[i] for i in maps.meta["images_used"]]  # indices among all the photos
     maps.meta.update(
         {
@@ -881,16 +882,32 @@ def decoding_record(cap: Capture, linear: bool | None, chosen_by: str, contrast:
             "tone_curve_contrast": contrast if eight else 1.0, "chosen_by": chosen_by if eight else "flag"}
 
 
+@dataclass(frozen=True)
+class FoundLamps:
+    """A flat sample's lamps found from its photos: ``result``, what :func:`matcap.refine.flat.flat_lights`
+    returned (the lights, or None for distant lamps, and fit.json's ``flat`` record) for the photos ``images``
+    (indices among those read) over ``mask`` ((H, W) bool)."""
+
+    result: tuple
+    images: tuple[int, ...]
+    mask: np.ndarray
+
+    def of(self, images: Sequence[int], mask: np.ndarray) -> tuple | None:
+        """``result`` where it was found from the photos ``images`` over ``mask``, else None."""
+        return self.result if tuple(images) == self.images and np.array_equal(mask, self.mask) else None
+
+
 def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None, pixels: int = 6000,
                   exclude: np.ndarray | None = None, flat: bool | None = None):
-    """(linear?, record, capture, maps) for 8-bit photos given neither --linear nor --srgb: run the networks on the
-    sRGB-decoded photos, fit both decodings (a quick fit on ``pixels`` random object pixels) and keep the one whose
-    re-render is closer to the photos *as stored* (RMS in 8-bit units / 255). ``capture`` is the photos read the
-    chosen way; ``maps`` the networks' maps when they were made from those photos (sRGB chosen), else None, so the
-    caller reads and predicts nothing twice. 16-bit and float photos: (False, None, capture, None). ``known``:
-    the :class:`matcap.lightfiles.KnownLights` of the photos read, held by both quick fits; ``exclude``: (H, W)
-    pixels kept out of the mask (a mirror ball); ``flat``: as :func:`capture` (a flat sample's lamps are found
-    from each decoding's photos over the whole sample, then held by its quick fit)."""
+    """(linear?, record, capture, maps, lamps) for 8-bit photos given neither --linear nor --srgb: run the networks
+    on the sRGB-decoded photos, fit both decodings (a quick fit on ``pixels`` random object pixels) and keep the one
+    whose re-render is closer to the photos *as stored* (RMS in 8-bit units / 255). ``capture`` is the photos read
+    the chosen way; ``maps`` the networks' maps when they were made from those photos (sRGB chosen), else None, so
+    the caller reads and predicts nothing twice. 16-bit and float photos: (False, None, capture, None, None).
+    ``known``: the :class:`matcap.lightfiles.KnownLights` of the photos read, held by both quick fits; ``exclude``:
+    (H, W) pixels kept out of the mask (a mirror ball); ``flat``: as :func:`capture` (a flat sample's lamps are
+    found from each decoding's photos over the whole sample, then held by its quick fit). ``lamps``: the chosen
+    decoding's :class:`FoundLamps` where they were found, else None, so that the fit need not find them again."""
     from matcap.refine import RefineSettings, refine
 
     kwargs = dict(estimate_kwargs, progress=False)
@@ -898,7 +915,7 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
     caps = {lin: without_region(load_capture(folder, mask=mask, linear=lin, max_side=max_side, max_images=max_images,
                                              seed=kwargs.get("seed", 0)), exclude) for lin in (False, True)}
     if "8-bit" not in caps[False].colour:
-        return False, None, caps[False], None
+        return False, None, caps[False], None, None
     maps = network_maps(caps[False].images, caps[False].mask, flat, True, **kwargs)
     rng = np.random.default_rng(0)
     ys, xs = np.nonzero(maps.mask)
@@ -909,7 +926,7 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
     base = settings if settings is not None else RefineSettings()
     quick = base.replace({"lights.iters": min(base.lights.iters, 200), "pixels.coarse_iters": 0,
                           "pixels.fine_iters": min(base.pixels.fine_iters, 10)})
-    rmse = {}
+    rmse, found = {}, {}
     flat, _ = flat_choice(flat, maps)
     for lin, cap in caps.items():
         images = [cap.images[i] for i in maps.meta["images_used"]]
@@ -917,7 +934,8 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
         if held is None and flat:
             from matcap.refine.flat import flat_lights
 
-            held, _ = flat_lights(images, maps.mask)
+            found[lin] = FoundLamps(flat_lights(images, maps.mask), tuple(maps.meta["images_used"]), maps.mask)
+            held = found[lin].result[0]
         res = refine(images, maps_sub, quick, lights=held)
         pred = np.clip(res.prediction[:, sub], 0.0, 1.0)
         photo = np.stack([im[sub] for im in images])
@@ -929,12 +947,13 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
               "rms_8bit_srgb": round(rmse[False], 5),
               "how": "quick refinement of both decodings on a pixel subsample; RMS of the re-render against the "
                      "stored 8-bit values / 255"}
-    return linear, record, caps[linear], None if linear else maps
+    return linear, record, caps[linear], None if linear else maps, found.get(linear)
 
 
 def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,
                 constants: dict[str, float] | None = None, *, progress: bool = False, seed: int = 0,
-                device: str = "cpu", lights=None, flat: bool = False, on_fit=None):
+                device: str = "cpu", lights=None, flat: bool = False, found_lamps: tuple | None = None,
+                on_fit=None):
     """Run :func:`matcap.refine.refine` on ``maps`` (the networks' output) and the photos they came from.
 
     Returns ``(refined maps, writer)``: ``writer(folder)`` writes lights.json / fit.json / residual.png /
@@ -943,7 +962,7 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
     ``lights``: :class:`matcap.lightfiles.KnownLights` of ``images`` (held by the fit), or None (estimated).
     ``on_fit(result, settings)``: called with the :class:`matcap.refine.RefineResult` (its warning, the reasons in
     its report, the candidate light models judged) and the settings it ran with, as soon as the fit is done.
-    ``flat``: a flat sample (:func:`matcap.refine.refine`'s ``flat``).
+    ``flat``, ``found_lamps``: a flat sample (:func:`matcap.refine.refine`'s).
     """
     from matcap.refine import RefineSettings, refine
     from matcap.refine.outputs import write_refine_outputs
@@ -957,7 +976,7 @@ def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], 
         held["roughness.metallic_hold"] = 0.0  # no metallic to vote on
     if held:  # constant maps stay where the caller put them
         s = s.replace(held)
-    result = refine(images, maps, s, progress=progress, lights=lights, flat=flat)
+    result = refine(images, maps, s, progress=progress, lights=lights, flat=flat, found_lamps=found_lamps)
     if on_fit is not None:
         on_fit(result, s)
     lin = result.report.get("linear") or {}

@@ -373,3 +373,31 @@ def test_large_flat_sample_meets_the_networks_as_a_copy(monkeypatch):
     balls = [np.repeat((np.clip(sphere @ d, 0.0, None) * mask)[..., None], 3, -1).astype(np.float32) * 0.6
              for d in lights]
     assert capture.network_maps(balls, mask, None, True, seed=0).meta["network_size_wh"] == [64, 64]  # an object
+
+
+def test_an_8bit_flat_capture_finds_its_lamps_once_per_decoding(tmp_path, monkeypatch):
+    """8-bit photos without --linear / --srgb: each decoding's quick fit finds the lamps, and the fit of the chosen
+    decoding takes that decoding's lamps rather than finding them a third time."""
+    from matcap import imageio
+    from matcap.capture import capture
+    from matcap.refine import flat as flat_module
+
+    n, albedo = _swatch(24)
+    photos = tmp_path / "swatch"
+    photos.mkdir()
+    for k, img in enumerate(_lambertian_photos(n, albedo, _lamps(6, (1.0, 2.0)))):
+        imageio.write_png(photos / f"{k}.png", imageio.linear_to_srgb(np.clip(img / img.max(), 0, 1)), bits=8)
+    found, calls = flat_module.flat_lights, []
+
+    def counted(images, mask):
+        calls.append(found(images, mask))
+        return calls[-1]
+
+    monkeypatch.setattr(flat_module, "flat_lights", counted)
+    maps, out = capture(photos, tmp_path / "out", linear=None, refine=True, flat=True, seed=0)
+    assert len(calls) == 2, len(calls)
+    chosen = calls[1] if maps.meta["decoding"]["8bit"] == "linear" else calls[0]
+    import json
+
+    fit = json.loads((out / "fit.json").read_text())
+    assert fit["flat"] == json.loads(json.dumps(chosen[1])), (fit["flat"], chosen[1])

@@ -53,8 +53,8 @@ def test_the_fit_keeps_linear_photos_linear(tmp_path):
     """The decision between linear and sRGB (no tone curve is decided: the quick fit's re-render error, measured
     in stored units, favours steeper curves wherever the fit is imperfect; docs/refine.md)."""
     folder = _sphere(tmp_path / "p", lambda v: v)
-    linear, record, cap, maps = decide_colour(folder, None, None, None, {"seed": 0})
-    assert linear and record["chosen"] == "linear" and maps is None and len(cap.images) == 8
+    linear, record, cap, maps, lamps = decide_colour(folder, None, None, None, {"seed": 0})
+    assert linear and record["chosen"] == "linear" and maps is None and lamps is None and len(cap.images) == 8
     assert record["rms_8bit_linear"] < 0.01 and record["rms_8bit_srgb"] > 2 * record["rms_8bit_linear"], record
 
 

@@ -485,7 +485,7 @@ def _centre(torch, mask: np.ndarray):
 
 def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
            progress: bool | Callable[[str, int, int, float], None] = False, lights=None,
-           flat: bool = False) -> RefineResult:
+           flat: bool = False, found_lamps: tuple | None = None) -> RefineResult:
     """Fit lights and maps to the photos.
 
     images: K (H, W, 3) float32 linear RGB photos (at the maps' size); maps: the networks' :class:`MaterialMaps`
@@ -497,7 +497,8 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     the falloff does not place them (distant lamps), the networks' maps are kept (the photos of a plane under
     distant lights cannot tell the lights apart) and the lights fitted to them, but for the normals: every one is
     the camera axis (the plane's own; on rendered flat samples the networks' normals came out further from the
-    truth than that, on every one).
+    truth than that, on every one). ``found_lamps``: what :func:`matcap.refine.flat.flat_lights` returned for these
+    photos and ``maps.mask``, where the caller found them already (the 8-bit decoding's choice): not found again.
     """
     import torch
 
@@ -512,14 +513,20 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
         if lights is None and flat:
             from matcap.refine.flat import flat_lights
 
-            lights, found = flat_lights(images, maps.mask)
+            t0 = time.perf_counter()
+            lights, found = found_lamps if found_lamps is not None else flat_lights(images, maps.mask)
+            lamps_s = time.perf_counter() - t0
             if lights is None:  # distant lamps: the networks' maps are kept (the lights fitted to them), but for
                 # their normals, which are the plane's own (the camera axis)
                 plane = replace(maps, normal=np.where(maps.mask[..., None], _plane_normals(maps.mask), 0.0))
                 result = _refine_estimated(torch, images, plane, s, progress, keep=FLAT_DISTANT)
                 result.report["flat"] = found
-                return result
-            return _refine_known(torch, images, maps, s, progress, lights, flat=found)
+            else:
+                result = _refine_known(torch, images, maps, s, progress, lights, flat=found)
+            timings = result.report["timings"]  # the lamps' search is part of the fit's time
+            timings["flat_lamps_s"] = round(lamps_s, 3)
+            timings["total_s"] = round(timings["total_s"] + lamps_s, 3)
+            return result
         if lights is not None:
             return _refine_known(torch, images, maps, s, progress, lights, flat={} if flat else None)
         return _refine_estimated(torch, images, maps, s, progress)
