@@ -909,7 +909,9 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
     found from each decoding's photos over the whole sample, then held by its quick fit). ``lamps``: the chosen
     decoding's :class:`FoundLamps` where they were found, else None, so that the fit need not find them again."""
     from matcap.refine import RefineSettings, refine
+    from networks.progress import progress as progress_bar
 
+    shown = estimate_kwargs.get("progress") is True
     kwargs = dict(estimate_kwargs, progress=False)
     max_images = kwargs.pop("max_images", None)
     caps = {lin: without_region(load_capture(folder, mask=mask, linear=lin, max_side=max_side, max_images=max_images,
@@ -928,6 +930,7 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
                           "pixels.fine_iters": min(base.pixels.fine_iters, 10)})
     rmse, found = {}, {}
     flat, _ = flat_choice(flat, maps)
+    bar = progress_bar(total=len(caps), desc="colour decision", unit="decoding", enabled=shown)
     for lin, cap in caps.items():
         images = [cap.images[i] for i in maps.meta["images_used"]]
         held = None if known is None else known.subset(maps.meta["images_used"])
@@ -942,6 +945,8 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
         if not lin:
             pred, photo = imageio.linear_to_srgb(pred), imageio.linear_to_srgb(np.clip(photo, 0.0, 1.0))
         rmse[lin] = float(np.sqrt(((pred - photo) ** 2).mean()))
+        bar.update(1)
+    bar.close()
     linear = rmse[True] < rmse[False]
     record = {"chosen": "linear" if linear else "srgb", "rms_8bit_linear": round(rmse[True], 5),
               "rms_8bit_srgb": round(rmse[False], 5),

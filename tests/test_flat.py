@@ -132,7 +132,11 @@ def test_flat_fit_recovers_the_normals_of_a_principled_render():
     n, albedo = _swatch()
     lamps = _lamps(10, (1.0, 3.0))
     start = _maps(np.dstack([np.zeros_like(n[..., :2]), np.ones_like(n[..., :1])]), np.full_like(albedo, 0.5), 0.5)
-    result = refine(_photos(n, albedo, lamps), start, RefineSettings(), flat=True)
+    steps = []
+    result = refine(_photos(n, albedo, lamps), start, RefineSettings(), flat=True,
+                    progress=lambda label, done, total, loss: steps.append((label, done, total)))
+    assert [st for st in steps if st[0] == "flat lamps"] == [("flat lamps", k, 3) for k in (1, 2, 3)]
+    assert 0 < result.report["timings"]["flat_lamps_s"] < result.report["timings"]["total_s"]
     assert result.report["flat"]["lamps"] == "near" and result.report["lights"]["kind"] == "point"
     assert result.report["smooth_tilt_removed_sigma_widths"] == 0.125
     err = _angle(result.maps.normal, n)
@@ -375,9 +379,9 @@ def test_large_flat_sample_meets_the_networks_as_a_copy(monkeypatch):
     assert capture.network_maps(balls, mask, None, True, seed=0).meta["network_size_wh"] == [64, 64]  # an object
 
 
-def test_an_8bit_flat_capture_finds_its_lamps_once_per_decoding(tmp_path, monkeypatch):
+def test_an_8bit_flat_capture_finds_its_lamps_once_per_decoding(tmp_path, monkeypatch, capsys):
     """8-bit photos without --linear / --srgb: each decoding's quick fit finds the lamps, and the fit of the chosen
-    decoding takes that decoding's lamps rather than finding them a third time."""
+    decoding takes that decoding's lamps rather than finding them a third time; the decision says it ran."""
     from matcap import imageio
     from matcap.capture import capture
     from matcap.refine import flat as flat_module
@@ -389,13 +393,16 @@ def test_an_8bit_flat_capture_finds_its_lamps_once_per_decoding(tmp_path, monkey
         imageio.write_png(photos / f"{k}.png", imageio.linear_to_srgb(np.clip(img / img.max(), 0, 1)), bits=8)
     found, calls = flat_module.flat_lights, []
 
-    def counted(images, mask):
-        calls.append(found(images, mask))
+    def counted(images, mask, on_stage=None):
+        calls.append(found(images, mask, on_stage))
         return calls[-1]
 
     monkeypatch.setattr(flat_module, "flat_lights", counted)
-    maps, out = capture(photos, tmp_path / "out", linear=None, refine=True, flat=True, seed=0)
+    monkeypatch.setenv("MATCAP_PROGRESS", "lines")
+    maps, out = capture(photos, tmp_path / "out", linear=None, refine=True, flat=True, seed=0, progress=True)
     assert len(calls) == 2, len(calls)
+    err = capsys.readouterr().err
+    assert "colour decision: 2/2 decodings in " in err and "fit flat lamps" not in err, err
     chosen = calls[1] if maps.meta["decoding"]["8bit"] == "linear" else calls[0]
     import json
 

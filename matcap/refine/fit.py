@@ -514,7 +514,11 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
             from matcap.refine.flat import flat_lights
 
             t0 = time.perf_counter()
-            lights, found = found_lamps if found_lamps is not None else flat_lights(images, maps.mask)
+            if found_lamps is None:
+                bar = _Bar(progress, s, total=3)  # the lamps' search: one step per stage of it
+                found_lamps = flat_lights(images, maps.mask, on_stage=lambda: bar.step("flat lamps", math.nan))
+                bar.close()
+            lights, found = found_lamps
             lamps_s = time.perf_counter() - t0
             if lights is None:  # distant lamps: the networks' maps are kept (the lights fitted to them), but for
                 # their normals, which are the plane's own (the camera axis)
@@ -2161,7 +2165,8 @@ class _Bar:
 
     def _close_stage(self) -> None:
         if self.bar is not None:
-            self.bar.set_postfix(loss=f"{self.loss:.4g}")
+            if math.isfinite(self.loss):
+                self.bar.set_postfix(loss=f"{self.loss:.4g}")
             self.bar.close()
             self.bar = None
 

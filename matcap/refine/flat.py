@@ -437,7 +437,7 @@ def _principled_lamps(torch, lum, mask, lamp, centre, width: float, side: int, w
 def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, cauchy: float = 0.05,
                 starts_widths: tuple[float, ...] = (0.75, 1.5, 3.0, 6.0), principled_side: int = 16,
                 principled_widths: tuple[float, ...] = (3.0,),
-                principled_roughness: tuple[float, ...] = (0.15, 0.5)) -> PlaneLamps:
+                principled_roughness: tuple[float, ...] = (0.15, 0.5), on_stage=None) -> PlaneLamps:
     """The lamp of every photo of a flat sample, from the falloff of its light over the plane.
 
     images: K (H, W, 3) linear RGB photos (any common scale); mask: (H, W) bool, the sample. Fitted on a copy whose
@@ -463,6 +463,8 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
        that ends with the lowest loss gives the positions where the plane explains the photos about as closely as
        step 2's free normals do (median absolute relative residual on step 2's copy at most :data:`PLANE_GAIN`
        times step 2's); elsewhere (a sample whose tilts shade it visibly) step 2's lamps stay.
+
+    ``on_stage()``, where given, is called as each of the three steps ends (progress).
     """
     import torch
 
@@ -535,9 +537,12 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
     lamp = torch.stack([tried[int(b)][0][k] for k, b in enumerate(best)])
     alpha = tried[int(losses.sum(1).argmin())][2]
 
+    stage_done = on_stage if on_stage is not None else (lambda: None)
+    stage_done()
     # ---- 2. near-light photometric stereo: the lamps with every pixel's albedo times normal solved for them
     lamp, resid, _ = _varpro(torch, lamp, vectors, y_np, w_np, cauchy, 4 * steps)
     _, resid_distant, _ = _varpro(torch, lamp, lambda t: vectors(t, distant=True), y_np, w_np, cauchy, 4 * steps)
+    stage_done()
     # ---- 3. the plane under the Principled BSDF (where the falloff placed the lamps at all)
     rough, resid_plane = math.nan, math.nan
     if _placed(resid, resid_distant):
@@ -546,6 +551,7 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
                                                       2 * steps, side)
         if _plane_better(resid_plane, resid):
             lamp = plane
+    stage_done()
     positions = torch.cat([lamp[:, :2], lamp[:, 2:3].exp()], 1)
     rel = positions - centre
     dist = rel.norm(dim=1)
@@ -579,13 +585,13 @@ def _placed(residual: float, residual_distant: float) -> bool:
     return residual_distant >= NEAR_FLOOR and residual <= NEAR_GAIN * residual_distant
 
 
-def flat_lights(images, mask: np.ndarray):
+def flat_lights(images, mask: np.ndarray, on_stage=None):
     """The lamps of a flat sample's photos, to be held by the fit: (:class:`matcap.lightfiles.KnownLights` of point
     lights with fitted intensities, or None where the falloff did not place them (:attr:`PlaneLamps.near`), and
-    fit.json's ``flat`` record)."""
+    fit.json's ``flat`` record). ``on_stage``: as :func:`plane_lamps`."""
     from matcap.lightfiles import KnownLights
 
-    lamps = plane_lamps(images, mask)
+    lamps = plane_lamps(images, mask, on_stage=on_stage)
     widths = lamps.distance_widths
     record = {"lamps": "near" if lamps.near else "distant", "found_from": "the falloff over the plane",
               "residual": round(lamps.residual, 5), "residual_distant_lamps": round(lamps.residual_distant, 5)}
