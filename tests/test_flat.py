@@ -314,7 +314,8 @@ def test_principled_plane_jacobian_is_forward_mode_autodiff():
     theta = torch.stack([theta, theta.flip(0)])  # two sets at once
     rho = torch.tensor([-0.4, 0.3], dtype=torch.float64)
     w = torch.stack([w, w.flip(1)])
-    residual, jacobian = _plane_principled_model(torch, pos, y, k)
+    model = _plane_principled_model(torch, pos, y, k)
+    residual, jacobian = model.residual, model.jacobian
     assert (residual(theta, rho, w)[1] > 0).all()  # every base colour inside its bound, where the two agree
 
     for c in range(2):

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -273,6 +274,16 @@ def _varpro(torch, lamp, vectors, y_np, w_np, cauchy: float, steps: int):
     return theta.reshape(k_count, 5), float(e.abs().median()), solve_b(theta)
 
 
+class _PlaneModel(NamedTuple):
+    """The functions of :func:`_plane_principled_model`."""
+
+    residual: Callable
+    jacobian: Callable
+    parts: Callable
+    residual_of: Callable
+    jacobian_of: Callable
+
+
 def _plane_principled_model(torch, pos, y_lin, k_count: int):
     """Photo k at plane point x under the fit's own Principled BSDF, normal +z, dielectric (metallic 0), one
     roughness for the whole sample: ``y_k(x) = c_k(x) + a(x) d_k(x)`` with ``c_k`` the specular part (the
@@ -280,10 +291,12 @@ def _plane_principled_model(torch, pos, y_lin, k_count: int):
     (:func:`matcap.refine.model.shade_base_linear`) of a point lamp at ``p_k`` of intensity ``I_k`` (irradiance
     ``I_k / |p_k - x|^2``), plus a room light ``A_k`` on the diffuse part, and ``a(x)`` each pixel's base colour
     solved by weighted least squares for them. C independent sets of lamps and roughness at once. pos (P, 3) plane
-    points; y_lin (K, P) the observations. Returns (residual(theta (C, K, 5), rho (C,), weight (C, K, P)) -> ((C, K,
-    P) relative residuals, a (C, P)), jacobian(theta, rho, weight) -> (C, K * P, K * 5 + 1): each lamp moves its
-    own photo and every base colour, the BSDF's derivatives by forward-mode autodiff, their way through the base
-    colours' least-squares solve in closed form; rho = logit(roughness))."""
+    points; y_lin (K, P) the observations. Returns a :class:`_PlaneModel`: residual(theta (C, K, 5), rho (C,),
+    weight (C, K, P)) -> ((C, K, P) relative residuals, a (C, P)), jacobian(theta, rho, weight) -> (C, K * P, K * 5
+    + 1): each lamp moves its own photo and every base colour, the BSDF's derivatives by forward-mode autodiff, their
+    way through the base colours' least-squares solve in closed form; rho = logit(roughness); and, for a solver that
+    evaluates the BSDF once per point, parts(theta, rho) -> (c, d), each (C, K, P), with residual_of(c, d, weight)
+    and jacobian_of(theta, rho, c, d, weight), the same functions of those parts."""
     from matcap.refine.model import shade_base_linear
 
     n_pix = pos.shape[0]
@@ -314,16 +327,20 @@ def _plane_principled_model(torch, pos, y_lin, k_count: int):
         wl = weight / y_lin ** 2
         return ((wl * (y_lin - const) * per).sum(1) / (wl * per * per).sum(1).clamp(min=1e-30)).clamp(min=0.0)
 
-    def residual(theta, rho, weight):
-        const, per = parts(theta, rho)
+    def residual_of(const, per, weight):
         a = base_of(const, per, weight)
         return weight.sqrt() * (y_lin - const - a[:, None] * per) / y_lin, a
 
+    def residual(theta, rho, weight):
+        return residual_of(*parts(theta, rho), weight)
+
     def jacobian(theta, rho, weight):
+        return jacobian_of(theta, rho, *parts(theta, rho), weight)
+
+    def jacobian_of(theta, rho, const, per, weight):
         # r_jx = s_jx (y_jx - c_jx - a_x d_jx) / y_jx; lamp k moves c_k, d_k and a_x = N_x / D_x through
         # dN_x = wl_kx ((y_kx - c_kx) dd_kx - d_kx dc_kx), dD_x = 2 wl_kx d_kx dd_kx (where a_x > 0)
         c_count = theta.shape[0]
-        const, per = parts(theta, rho)
         a = base_of(const, per, weight)
         dc, dd = (d.permute(1, 2, 3, 0) for d in derivatives(theta, rho))  # (C, K, P, 6)
         wl = weight / y_lin ** 2
@@ -340,7 +357,7 @@ def _plane_principled_model(torch, pos, y_lin, k_count: int):
         j_rho = own[..., 5] + s * per * da_rho[:, None]
         return torch.cat([jac.reshape(c_count, -1, k_count * 5), j_rho.reshape(c_count, -1, 1)], -1)
 
-    return residual, jacobian
+    return _PlaneModel(residual, jacobian, parts, residual_of, jacobian_of)
 
 
 def _plane_principled(torch, lamps, rough, pos, y_np, w_np, cauchy: float, steps: int,
@@ -353,7 +370,7 @@ def _plane_principled(torch, lamps, rough, pos, y_np, w_np, cauchy: float, steps
     c_count, k_count = lamps.shape[:2]
     y_lin = torch.from_numpy(np.exp(y_np))
     w_obs = torch.from_numpy(w_np)
-    residual, jacobian = _plane_principled_model(torch, pos, y_lin, k_count)
+    model = _plane_principled_model(torch, pos, y_lin, k_count)
     scale = w_obs.sqrt().clamp(min=1e-9)
     w_all = w_obs.expand(c_count, -1, -1)
     theta = lamps.clone()
@@ -361,10 +378,11 @@ def _plane_principled(torch, lamps, rough, pos, y_np, w_np, cauchy: float, steps
     rho = torch.log(rough / (1.0 - rough))
     lam = torch.full((c_count,), 1e-3, dtype=torch.float64)
     done = torch.zeros(c_count, dtype=torch.bool)
+    const, per = model.parts(theta, rho)  # the BSDF's parts at the current lamps, kept from an accepted trial
     for _ in range(steps):
-        irls = w_obs / (1.0 + (residual(theta, rho, w_all)[0] / scale / cauchy) ** 2)
-        r = residual(theta, rho, irls)[0].reshape(c_count, -1)
-        jac = jacobian(theta, rho, irls)  # (C, K * P, K * 5 + 1)
+        irls = w_obs / (1.0 + (model.residual_of(const, per, w_all)[0] / scale / cauchy) ** 2)
+        r = model.residual_of(const, per, irls)[0].reshape(c_count, -1)
+        jac = model.jacobian_of(theta, rho, const, per, irls)  # (C, K * P, K * 5 + 1)
         if hold_roughness:
             jac[..., -1] = 0.0
         jtj, jtr = jac.transpose(1, 2) @ jac, (jac.transpose(1, 2) @ r[..., None])[..., 0]
@@ -376,17 +394,19 @@ def _plane_principled(torch, lamps, rough, pos, y_np, w_np, cauchy: float, steps
         damp = lam[:, None, None] * torch.diag_embed(torch.diagonal(jtj, dim1=1, dim2=2).clamp(min=1e-12))
         step = torch.linalg.solve(jtj + damp, -jtr[..., None])[..., 0]
         trial_theta, trial_rho = theta + step[:, :-1].reshape(c_count, k_count, 5), rho + step[:, -1]
-        trial = residual(trial_theta, trial_rho, irls)[0].reshape(c_count, -1)
+        trial_parts = model.parts(trial_theta, trial_rho)
+        trial = model.residual_of(*trial_parts, irls)[0].reshape(c_count, -1)
         new_cost = (trial * trial).sum(1)
         better = torch.isfinite(new_cost) & (new_cost < cost) & ~done
         theta = torch.where(better[:, None, None], trial_theta, theta)
         rho = torch.where(better, trial_rho, rho)
+        const, per = (torch.where(better[:, None, None], t, c) for t, c in zip(trial_parts, (const, per)))
         lam = torch.where(better, (lam / 3.0).clamp(min=1e-9), lam * 4.0)
         # a start is done where no step is left that lowers its loss noticeably
         done |= (lam >= 1e9) | (better & (cost - new_cost < 1e-7 * cost))
         if bool(done.all()):
             break
-    e = residual(theta, rho, w_all)[0] / scale
+    e = model.residual_of(const, per, w_all)[0] / scale
     loss = (w_obs * torch.log1p((e / cauchy) ** 2)).sum((1, 2)) / w_obs.sum().clamp(min=1.0)
     return theta, rho, torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
 
@@ -429,7 +449,7 @@ def _principled_lamps(torch, lum, mask, lamp, centre, width: float, side: int, w
     lamp, rho = lamps[best], rho[best]
     pos, y_np, w_np = copy(check_side)
     w_obs = torch.from_numpy(w_np)
-    residual = _plane_principled_model(torch, pos, torch.from_numpy(np.exp(y_np)), lamp.shape[0])[0]
+    residual = _plane_principled_model(torch, pos, torch.from_numpy(np.exp(y_np)), lamp.shape[0]).residual
     e = residual(lamp[None], rho[None], w_obs[None])[0][0] / w_obs.sqrt().clamp(min=1e-9)
     return lamp, float(torch.sigmoid(rho)), float(e[w_obs > 0].abs().median())
 
