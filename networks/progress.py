@@ -75,7 +75,8 @@ class LineProgress:
 
     def refresh(self) -> None:
         now = self._clock()
-        if not self.closed and self.interval > 0 and now - self._last >= self.interval:
+        finished = self.total is not None and self.n >= self.total  # the closing line says it
+        if not self.closed and not finished and self.interval > 0 and now - self._last >= self.interval:
             self._last = now
             self._write(final=False)
 

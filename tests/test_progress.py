@@ -47,6 +47,17 @@ def test_lines_one_at_the_end_and_one_per_interval():
     ]
 
 
+def test_a_stage_that_ends_after_the_interval_writes_only_its_closing_line():
+    out, clock = io.StringIO(), FakeClock()
+    bar = LineProgress(total=2, desc="colour decision", unit="decoding", file=out, interval=60, clock=clock)
+    clock.t += 50
+    bar.update(1)
+    clock.t += 64
+    bar.update(1)  # the last step, past the interval: no "so far" line before the closing one
+    bar.close()
+    assert out.getvalue().splitlines() == ["colour decision: 2/2 decodings in 114.0 s"]
+
+
 def test_iterating_writes_one_line_and_no_carriage_returns(monkeypatch):
     monkeypatch.delenv("MATCAP_PROGRESS", raising=False)
     out = io.StringIO()
