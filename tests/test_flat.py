@@ -1,6 +1,7 @@
 """Flat samples: the plane check, the lamps found from their falloff, the fit that holds them, and bad input."""
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -315,7 +316,7 @@ def test_principled_plane_jacobian_is_forward_mode_autodiff():
     rho = torch.tensor([-0.4, 0.3], dtype=torch.float64)
     w = torch.stack([w, w.flip(1)])
     model = _plane_principled_model(torch, pos, y, k)
-    residual, jacobian = model.residual, model.jacobian
+    residual = model.residual
     assert (residual(theta, rho, w)[1] > 0).all()  # every base colour inside its bound, where the two agree
 
     for c in range(2):
@@ -326,7 +327,8 @@ def test_principled_plane_jacobian_is_forward_mode_autodiff():
 
         auto = torch.func.jacfwd(one_set)(torch.cat([theta[c].reshape(-1), rho[c, None]]))
         assert auto.shape == (k * p, k * 5 + 1) and auto.abs().max() > 0.1
-        torch.testing.assert_close(jacobian(theta, rho, w)[c], auto, rtol=1e-8, atol=1e-10)
+        jacobian = model.jacobian_of(theta, rho, *model.parts(theta, rho), w)
+        torch.testing.assert_close(jacobian[c], auto, rtol=1e-8, atol=1e-10)
 
 
 def test_flat_sample_under_distant_lamps_keeps_the_networks_maps_with_the_planes_normals():
@@ -405,7 +407,5 @@ def test_an_8bit_flat_capture_finds_its_lamps_once_per_decoding(tmp_path, monkey
     err = capsys.readouterr().err
     assert "colour decision: 2/2 decodings in " in err and "fit flat lamps" not in err, err
     chosen = calls[1] if maps.meta["decoding"]["8bit"] == "linear" else calls[0]
-    import json
-
     fit = json.loads((out / "fit.json").read_text())
     assert fit["flat"] == json.loads(json.dumps(chosen[1])), (fit["flat"], chosen[1])

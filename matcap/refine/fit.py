@@ -630,11 +630,11 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     tilt_held = flat is not None and given is None and known.source != "estimated" and s.lights.flat_mean_held
     # a flat sample whose lights' ratios are known: the photos set their overall power (each photo's own intensity
     # fitted leaves too much freedom for that)
-    level_free = flat is not None and given is not None and s.lights.flat_level_free
+    ratios_on_plane = flat is not None and given is not None and s.lights.flat_level_free
     # distant lights whose intensities are given are taken as they are, but for that power on a flat sample; the
     # others are fitted
-    fitted = (inv_distance is not None or given is None or level_free) and s.lights.known_iters > 0
-    level_free = level_free and fitted
+    fitted = (inv_distance is not None or given is None or ratios_on_plane) and s.lights.known_iters > 0
+    level_free = fitted and ratios_on_plane
     # nor can a plane's photos tell a constant ambient from each photo's own intensity, or, under distant lights
     # (which light it evenly), from their overall power: there it stays as given
     ambient_free = not (flat is not None and (given is None or inv_distance is None))

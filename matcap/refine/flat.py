@@ -278,7 +278,6 @@ class _PlaneModel(NamedTuple):
     """The functions of :func:`_plane_principled_model`."""
 
     residual: Callable
-    jacobian: Callable
     parts: Callable
     residual_of: Callable
     jacobian_of: Callable
@@ -292,11 +291,11 @@ def _plane_principled_model(torch, pos, y_lin, k_count: int):
     ``I_k / |p_k - x|^2``), plus a room light ``A_k`` on the diffuse part, and ``a(x)`` each pixel's base colour
     solved by weighted least squares for them. C independent sets of lamps and roughness at once. pos (P, 3) plane
     points; y_lin (K, P) the observations. Returns a :class:`_PlaneModel`: residual(theta (C, K, 5), rho (C,),
-    weight (C, K, P)) -> ((C, K, P) relative residuals, a (C, P)), jacobian(theta, rho, weight) -> (C, K * P, K * 5
-    + 1): each lamp moves its own photo and every base colour, the BSDF's derivatives by forward-mode autodiff, their
-    way through the base colours' least-squares solve in closed form; rho = logit(roughness); and, for a solver that
-    evaluates the BSDF once per point, parts(theta, rho) -> (c, d), each (C, K, P), with residual_of(c, d, weight)
-    and jacobian_of(theta, rho, c, d, weight), the same functions of those parts."""
+    weight (C, K, P)) -> ((C, K, P) relative residuals, a (C, P)), rho = logit(roughness); parts(theta, rho) -> (c,
+    d), each (C, K, P), the BSDF evaluated once per point, with residual_of(c, d, weight), the residual from those
+    parts, and jacobian_of(theta, rho, c, d, weight) -> (C, K * P, K * 5 + 1): each lamp moves its own photo and
+    every base colour, the BSDF's derivatives by forward-mode autodiff, their way through the base colours'
+    least-squares solve in closed form."""
     from matcap.refine.model import shade_base_linear
 
     n_pix = pos.shape[0]
@@ -334,9 +333,6 @@ def _plane_principled_model(torch, pos, y_lin, k_count: int):
     def residual(theta, rho, weight):
         return residual_of(*parts(theta, rho), weight)
 
-    def jacobian(theta, rho, weight):
-        return jacobian_of(theta, rho, *parts(theta, rho), weight)
-
     def jacobian_of(theta, rho, const, per, weight):
         # r_jx = s_jx (y_jx - c_jx - a_x d_jx) / y_jx; lamp k moves c_k, d_k and a_x = N_x / D_x through
         # dN_x = wl_kx ((y_kx - c_kx) dd_kx - d_kx dc_kx), dD_x = 2 wl_kx d_kx dd_kx (where a_x > 0)
@@ -357,7 +353,7 @@ def _plane_principled_model(torch, pos, y_lin, k_count: int):
         j_rho = own[..., 5] + s * per * da_rho[:, None]
         return torch.cat([jac.reshape(c_count, -1, k_count * 5), j_rho.reshape(c_count, -1, 1)], -1)
 
-    return _PlaneModel(residual, jacobian, parts, residual_of, jacobian_of)
+    return _PlaneModel(residual, parts, residual_of, jacobian_of)
 
 
 def _plane_principled(torch, lamps, rough, pos, y_np, w_np, cauchy: float, steps: int,
