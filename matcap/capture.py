@@ -885,14 +885,14 @@ def decoding_record(cap: Capture, linear: bool | None, chosen_by: str, contrast:
 @dataclass(frozen=True)
 class FoundLamps:
     """A flat sample's lamps found from its photos: ``result``, what :func:`matcap.refine.flat.flat_lights`
-    returned (the lights, or None for distant lamps, and fit.json's ``flat`` record) for the photos ``images``
-    (indices among those read) over ``mask`` ((H, W) bool)."""
+    returned (:class:`matcap.refine.flat.FlatLights`) for the photos ``images`` (indices among those read) over
+    ``mask`` ((H, W) bool)."""
 
-    result: tuple
+    result: Any
     images: tuple[int, ...]
     mask: np.ndarray
 
-    def of(self, images: Sequence[int], mask: np.ndarray) -> tuple | None:
+    def of(self, images: Sequence[int], mask: np.ndarray):
         """``result`` where it was found from the photos ``images`` over ``mask``, else None."""
         return self.result if tuple(images) == self.images and np.array_equal(mask, self.mask) else None
 
@@ -918,7 +918,9 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
                                              seed=kwargs.get("seed", 0)), exclude) for lin in (False, True)}
     if "8-bit" not in caps[False].colour:
         return False, None, caps[False], None, None
-    maps = network_maps(caps[False].images, caps[False].mask, flat, True, **kwargs)
+    # the networks' stages show their own progress as in a capture without the decision
+    maps = network_maps(caps[False].images, caps[False].mask, flat, True,
+                        **dict(kwargs, progress=estimate_kwargs.get("progress", False)))
     rng = np.random.default_rng(0)
     ys, xs = np.nonzero(maps.mask)
     pick = rng.choice(len(ys), size=min(len(ys), pixels), replace=False)
@@ -937,8 +939,12 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
         if held is None and flat:
             from matcap.refine.flat import flat_lights
 
-            found[lin] = FoundLamps(flat_lights(images, maps.mask), tuple(maps.meta["images_used"]), maps.mask)
-            held = found[lin].result[0]
+            lamps_bar = progress_bar(total=3, desc=f"flat lamps ({'linear' if lin else 'sRGB'})", unit="step",
+                                     enabled=shown)
+            found[lin] = FoundLamps(flat_lights(images, maps.mask, on_stage=lambda: lamps_bar.update(1)),
+                                    tuple(maps.meta["images_used"]), maps.mask)
+            lamps_bar.close()
+            held = found[lin].result.lights
         res = refine(images, maps_sub, quick, lights=held)
         pred = np.clip(res.prediction[:, sub], 0.0, 1.0)
         photo = np.stack([im[sub] for im in images])
@@ -957,7 +963,7 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
 
 def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,
                 constants: dict[str, float] | None = None, *, progress: bool = False, seed: int = 0,
-                device: str = "cpu", lights=None, flat: bool = False, found_lamps: tuple | None = None,
+                device: str = "cpu", lights=None, flat: bool = False, found_lamps=None,
                 on_fit=None):
     """Run :func:`matcap.refine.refine` on ``maps`` (the networks' output) and the photos they came from.
 

@@ -406,6 +406,8 @@ def test_an_8bit_flat_capture_finds_its_lamps_once_per_decoding(tmp_path, monkey
     assert len(calls) == 2, len(calls)
     err = capsys.readouterr().err
     assert "colour decision: 2/2 decodings in " in err and "fit flat lamps" not in err, err
+    # each decoding's lamp search shows its three stages
+    assert "flat lamps (sRGB): 3/3 step" in err and "flat lamps (linear): 3/3 step" in err, err
     chosen = calls[1] if maps.meta["decoding"]["8bit"] == "linear" else calls[0]
     fit = json.loads((out / "fit.json").read_text())
     assert fit["flat"] == json.loads(json.dumps(chosen[1])), (fit["flat"], chosen[1])

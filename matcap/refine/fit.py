@@ -485,7 +485,7 @@ def _centre(torch, mask: np.ndarray):
 
 def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
            progress: bool | Callable[[str, int, int, float], None] = False, lights=None,
-           flat: bool = False, found_lamps: tuple | None = None) -> RefineResult:
+           flat: bool = False, found_lamps=None) -> RefineResult:
     """Fit lights and maps to the photos.
 
     images: K (H, W, 3) float32 linear RGB photos (at the maps' size); maps: the networks' :class:`MaterialMaps`
@@ -518,7 +518,7 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
                 bar = _Bar(progress, s, total=3)  # the lamps' search: one step per stage of it
                 found_lamps = flat_lights(images, maps.mask, on_stage=lambda: bar.step("flat lamps", math.nan))
                 bar.close()
-            lights, found = found_lamps
+            lights, found = found_lamps.lights, found_lamps.record
             lamps_s = time.perf_counter() - t0
             if lights is None:  # distant lamps: the networks' maps are kept (the lights fitted to them), but for
                 # their normals, which are the plane's own (the camera axis)

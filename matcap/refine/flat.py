@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -601,10 +601,19 @@ def _placed(residual: float, residual_distant: float) -> bool:
     return residual_distant >= NEAR_FLOOR and residual <= NEAR_GAIN * residual_distant
 
 
-def flat_lights(images, mask: np.ndarray, on_stage=None):
-    """The lamps of a flat sample's photos, to be held by the fit: (:class:`matcap.lightfiles.KnownLights` of point
-    lights with fitted intensities, or None where the falloff did not place them (:attr:`PlaneLamps.near`), and
-    fit.json's ``flat`` record). ``on_stage``: as :func:`plane_lamps`."""
+class FlatLights(NamedTuple):
+    """What :func:`flat_lights` found for a flat sample's photos."""
+
+    lights: Any
+    """:class:`matcap.lightfiles.KnownLights` of point lights (intensities left to the fit), to be held by the fit;
+    None where the falloff did not place them (:attr:`PlaneLamps.near`: distant lamps)."""
+    record: dict
+    """fit.json's ``flat`` record: how the lamps were found, their distances in sample widths."""
+
+
+def flat_lights(images, mask: np.ndarray, on_stage=None) -> FlatLights:
+    """The lamps of a flat sample's photos (``images``: K (H, W, 3) linear RGB; ``mask``: (H, W) bool, the sample),
+    from the falloff of their light over the plane (:func:`plane_lamps`). ``on_stage``: as :func:`plane_lamps`."""
     from matcap.lightfiles import KnownLights
 
     lamps = plane_lamps(images, mask, on_stage=on_stage)
@@ -612,7 +621,7 @@ def flat_lights(images, mask: np.ndarray, on_stage=None):
     record = {"lamps": "near" if lamps.near else "distant", "found_from": "the falloff over the plane",
               "residual": round(lamps.residual, 5), "residual_distant_lamps": round(lamps.residual_distant, 5)}
     if not lamps.near:
-        return None, record
+        return FlatLights(None, record)
     record.update({"distance_widths_median": round(float(np.median(widths)), 3),
                    "distance_widths": [round(float(v), 3) for v in widths], "sample_width": round(lamps.width, 5),
                    "placed_by": "the plane under the Principled BSDF" if lamps.plane_placed else
@@ -620,4 +629,4 @@ def flat_lights(images, mask: np.ndarray, on_stage=None):
                    "plane_roughness": round(lamps.roughness, 3)})
     known = KnownLights(lamps.directions.astype(np.float64), None, "estimated", "", "order",
                         lamps.positions.astype(np.float64))
-    return known, record
+    return FlatLights(known, record)
