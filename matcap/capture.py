@@ -14,7 +14,7 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -22,6 +22,9 @@ from matcap import imageio
 from matcap.errors import MatcapError
 from matcap.lightfiles import natural_key
 from scenes.materialmaps import MaterialMaps, check_constant
+
+if TYPE_CHECKING:
+    from matcap.refine.flat import FlatLights
 
 #: Files in a capture folder that are not photos: masks and ground-truth maps.
 _SKIP = re.compile(
@@ -888,11 +891,11 @@ class FoundLamps:
     returned (:class:`matcap.refine.flat.FlatLights`) for the photos ``images`` (indices among those read) over
     ``mask`` ((H, W) bool)."""
 
-    result: Any
+    result: FlatLights
     images: tuple[int, ...]
     mask: np.ndarray
 
-    def of(self, images: Sequence[int], mask: np.ndarray):
+    def of(self, images: Sequence[int], mask: np.ndarray) -> FlatLights | None:
         """``result`` where it was found from the photos ``images`` over ``mask``, else None."""
         return self.result if tuple(images) == self.images and np.array_equal(mask, self.mask) else None
 
@@ -963,7 +966,7 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
 
 def refine_maps(maps: MaterialMaps, images: list[np.ndarray], files: list[str], colour: str, settings=None,
                 constants: dict[str, float] | None = None, *, progress: bool = False, seed: int = 0,
-                device: str = "cpu", lights=None, flat: bool = False, found_lamps=None,
+                device: str = "cpu", lights=None, flat: bool = False, found_lamps: FlatLights | None = None,
                 on_fit=None):
     """Run :func:`matcap.refine.refine` on ``maps`` (the networks' output) and the photos they came from.
 

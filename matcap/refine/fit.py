@@ -29,13 +29,16 @@ import math
 import os
 import time
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from matcap.errors import MatcapError
 from matcap.refine.settings import RefineSettings
 from scenes.materialmaps import MaterialMaps
+
+if TYPE_CHECKING:
+    from matcap.refine.flat import FlatLights
 
 LUMA = (0.2126, 0.7152, 0.0722)
 
@@ -485,7 +488,7 @@ def _centre(torch, mask: np.ndarray):
 
 def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
            progress: bool | Callable[[str, int, int, float], None] = False, lights=None,
-           flat: bool = False, found_lamps=None) -> RefineResult:
+           flat: bool = False, found_lamps: FlatLights | None = None) -> RefineResult:
     """Fit lights and maps to the photos.
 
     images: K (H, W, 3) float32 linear RGB photos (at the maps' size); maps: the networks' :class:`MaterialMaps`

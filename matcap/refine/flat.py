@@ -17,11 +17,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, NamedTuple
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import numpy as np
 
 from matcap.errors import MatcapError
+
+if TYPE_CHECKING:
+    from matcap.lightfiles import KnownLights
 
 
 @dataclass
@@ -604,7 +607,7 @@ def _placed(residual: float, residual_distant: float) -> bool:
 class FlatLights(NamedTuple):
     """What :func:`flat_lights` found for a flat sample's photos."""
 
-    lights: Any
+    lights: KnownLights | None
     """:class:`matcap.lightfiles.KnownLights` of point lights (intensities left to the fit), to be held by the fit;
     None where the falloff did not place them (:attr:`PlaneLamps.near`: distant lamps)."""
     record: dict
