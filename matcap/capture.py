@@ -915,15 +915,13 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
     from networks.progress import progress as progress_bar
 
     shown = estimate_kwargs.get("progress") is True
-    kwargs = dict(estimate_kwargs, progress=False)
+    kwargs = dict(estimate_kwargs)  # the networks' stages show their own progress, as in any capture
     max_images = kwargs.pop("max_images", None)
     caps = {lin: without_region(load_capture(folder, mask=mask, linear=lin, max_side=max_side, max_images=max_images,
                                              seed=kwargs.get("seed", 0)), exclude) for lin in (False, True)}
     if "8-bit" not in caps[False].colour:
         return False, None, caps[False], None, None
-    # the networks' stages show their own progress as in a capture without the decision
-    maps = network_maps(caps[False].images, caps[False].mask, flat, True,
-                        **dict(kwargs, progress=estimate_kwargs.get("progress", False)))
+    maps = network_maps(caps[False].images, caps[False].mask, flat, True, **kwargs)
     rng = np.random.default_rng(0)
     ys, xs = np.nonzero(maps.mask)
     pick = rng.choice(len(ys), size=min(len(ys), pixels), replace=False)

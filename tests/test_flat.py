@@ -319,6 +319,7 @@ def test_principled_plane_jacobian_is_forward_mode_autodiff():
     residual = model.residual
     assert (residual(theta, rho, w)[1] > 0).all()  # every base colour inside its bound, where the two agree
 
+    jacobian = model.jacobian_of(theta, rho, *model.parts(theta, rho), w)
     for c in range(2):
         def one_set(v):
             t, r = theta.clone(), rho.clone()
@@ -327,7 +328,6 @@ def test_principled_plane_jacobian_is_forward_mode_autodiff():
 
         auto = torch.func.jacfwd(one_set)(torch.cat([theta[c].reshape(-1), rho[c, None]]))
         assert auto.shape == (k * p, k * 5 + 1) and auto.abs().max() > 0.1
-        jacobian = model.jacobian_of(theta, rho, *model.parts(theta, rho), w)
         torch.testing.assert_close(jacobian[c], auto, rtol=1e-8, atol=1e-10)
 
 
@@ -410,4 +410,4 @@ def test_an_8bit_flat_capture_finds_its_lamps_once_per_decoding(tmp_path, monkey
     assert "flat lamps (sRGB): 3/3 step" in err and "flat lamps (linear): 3/3 step" in err, err
     chosen = calls[1] if maps.meta["decoding"]["8bit"] == "linear" else calls[0]
     fit = json.loads((out / "fit.json").read_text())
-    assert fit["flat"] == json.loads(json.dumps(chosen[1])), (fit["flat"], chosen[1])
+    assert fit["flat"] == json.loads(json.dumps(chosen.record)), (fit["flat"], chosen.record)
