@@ -21,7 +21,7 @@ Each lamp's strength is set so that the brightest point of the plane receives an
 1. No ambient light. Photos are 16-bit linear PNGs. The work folder holds per set and condition::
 
     <set>_<cond>/photos/00.png ...   the photos
-    <set>_<cond>/lights.json         the true lights (matcap's lights.json: `--lights` reads it)
+    <set>_<cond>/lights.json         the true lights (matcap's lights.json, intensities in the photos' units)
     <set>_<cond>/gt/normal.exr basecolor.exr roughness.exr metallic.exr   the truth (linear)
     <set>_<cond>/sample.json         what was rendered (size, seed, spp, photos, render seconds)
     <set>_<cond>/results/<method>/   `matcap capture`'s result folder
@@ -242,7 +242,7 @@ def write_sample(folder: Path, maps, lights, photos: list, info: dict) -> None:
     files = [f"{k:02d}.png" for k in range(len(photos))]
     for name, img in zip(files, photos):
         write_png(folder / "photos" / name, img, bits=16)
-    write_lights(folder / "lights.json", light_entries(lights, files),
+    write_lights(folder / "lights.json", light_entries(lights, files), intensity_units="photos",
                  note="true lights of a rendered flat sample (benchmarks/flat_check.py)")
     write_exr(folder / "gt" / "normal.exr", maps.normal)
     write_exr(folder / "gt" / "basecolor.exr", maps.base_color)

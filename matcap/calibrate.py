@@ -133,6 +133,7 @@ class Calibration:
             "source": "ball",
             "camera": self.camera,
             "intensity_known": self.intensities is not None,
+            "intensity_units": "relative",  # a ball's highlights give the lamps' ratios, not their power
             "ball": {"circle_px": [round(cx, 3), round(cy, 3), round(r, 3)], "found": self.circle_source,
                      "image_size_wh": [int(self.size[1]), int(self.size[0])],
                      **({} if self.cone is None else {

@@ -13,8 +13,9 @@ Formats (:func:`read_light_file` tells them apart by name and content):
   the first.
 
 Directions point from the surface toward the light in the camera frame of ``normal.exr``: x right, y up, z toward
-the camera. They are normalised on reading. Intensities are relative (one overall scale is fitted); where a file
-gives none, the fit finds one per photo. Every problem (a count or file-name mismatch, a zero or non-finite row,
+the camera. They are normalised on reading. Intensities are relative (one overall scale is fitted) unless a
+``lights.json`` says ``"intensity_units": "photos"``: then they, and its ambient, are in the decoded photos' linear
+units and the fit holds their power as given. Where a file gives no intensities, the fit finds one per photo. Every problem (a count or file-name mismatch, a zero or non-finite row,
 a light behind the object's plane) is one :class:`MatcapError` line naming the file and the row.
 """
 from __future__ import annotations
@@ -46,7 +47,9 @@ class KnownLights:
     source: "file", "ball" or "estimated" (a flat sample's lamps, found from their falloff); path: the file read
         ("" where none was); matched: how rows met photos ("name", "order", "names.txt");
     ambient: (K, 9, 3) the SH ambient radiance each photo was taken under, in the intensities' units (a
-        ``lights.json``'s ``sh``), where the file gives intensities; else None.
+        ``lights.json``'s ``sh``), where the file gives intensities; else None;
+    intensity_units: "relative" (only the intensities' ratios are known) or "photos" (they are in the decoded
+        photos' linear units: the fit holds their power; :data:`matcap.refine.lightfile.INTENSITY_UNITS`).
     """
 
     directions: np.ndarray
@@ -56,6 +59,7 @@ class KnownLights:
     matched: str
     positions: np.ndarray | None = None
     ambient: np.ndarray | None = None
+    intensity_units: str = "relative"
 
     def __len__(self) -> int:
         return len(self.directions)
@@ -65,12 +69,13 @@ class KnownLights:
         idx = np.asarray(index, int)
         pick = lambda a: None if a is None else a[idx]  # noqa: E731
         return KnownLights(self.directions[idx], pick(self.intensities), self.source, self.path, self.matched,
-                           pick(self.positions), pick(self.ambient))
+                           pick(self.positions), pick(self.ambient), self.intensity_units)
 
     def record(self) -> dict:
         """capture.json / fit.json summary."""
         return {"source": self.source, "file": self.path or None, "matched_by": self.matched,
                 "intensities": "given" if self.intensities is not None else "fitted",
+                **({"intensity_units": self.intensity_units} if self.intensities is not None else {}),
                 "ambient": "given" if self.ambient is not None else ("none" if self.intensities is not None
                                                                     else "fitted"),
                 "kind": "point" if self.positions is not None else "directional"}
@@ -87,7 +92,8 @@ def natural_key(name: str):
 @dataclass
 class _Rows:
     """Rows of a light file before matching: directions (R, 3) raw, intensities (R, 3) or None, names (R) or
-    None, positions (R, 3) or None, line numbers (R) for messages, ambient (R, 9, 3) or None."""
+    None, positions (R, 3) or None, line numbers (R) for messages, ambient (R, 9, 3) or None, what the
+    intensities are ("relative" or "photos")."""
 
     directions: np.ndarray
     intensities: np.ndarray | None
@@ -95,6 +101,7 @@ class _Rows:
     positions: np.ndarray | None
     lines: list[int]
     ambient: np.ndarray | None = None
+    intensity_units: str = "relative"
 
 
 def _numbers(path: Path, lineno: int, fields: list[str]) -> list[float]:
@@ -213,7 +220,8 @@ def _read_json(path: Path) -> tuple[_Rows, str]:
     source = "ball" if doc.get("source") == "ball" else "file"
     return _Rows(np.array(dirs, np.float64), intens,
                  names if all(isinstance(n, str) for n in names) else None, positions,
-                 [e.get("index", i) for i, e in enumerate(images)], ambient), source
+                 [e.get("index", i) for i, e in enumerate(images)], ambient,
+                 doc.get("intensity_units", "relative")), source
 
 
 def _check_intensities(path: Path, intens: np.ndarray, lines: list[int]) -> None:
@@ -326,4 +334,4 @@ def read_light_file(path: str | os.PathLike, photos: Sequence[str], source: str 
         matched = "order"
     pick = lambda a: None if a is None else np.asarray(a, np.float64)[idx]  # noqa: E731
     return KnownLights(directions[idx], pick(rows.intensities), source or found_source, str(p), matched,
-                       pick(positions), pick(rows.ambient))
+                       pick(positions), pick(rows.ambient), rows.intensity_units)

@@ -212,6 +212,44 @@ def test_flat_fit_under_given_lamps_takes_the_lights_power_from_the_photos(dista
         assert level[False] < 0.8 and rough[False] > 2 * rough[True], (level, rough)  # measured 0.46, 0.17
 
 
+@pytest.mark.parametrize("distant", [False, True])
+def test_flat_fit_holds_the_power_of_lights_given_in_the_photos_units(distant):
+    """Intensities in the photos' own units (a ``lights.json`` with ``"intensity_units": "photos"``) give the lights'
+    power as well: a flat sample's fit holds it, so the base colour comes out at its level and the roughness is the
+    one the highlights show, where the same intensities taken as relative leave the power to trade with a broad
+    lobe's roughness."""
+    from matcap.lightfiles import KnownLights
+    from matcap.refine import RefineSettings, refine
+    from renderers.relight import render
+    from scenes.lights import DirectionalLight, PointLight
+
+    n, albedo = _swatch(48, seed=3)
+    albedo = 0.2 * albedo  # a dark sample: the highlight is a large share of what the photos show
+    lamps = _lamps(12, (1.0, 2.0), seed=4)
+    dirs = lamps / np.linalg.norm(lamps, axis=1, keepdims=True)
+    power = np.array([2.0 if distant else 2.0 * (p @ p) for p in lamps])
+    truth = _maps(n, albedo, 0.7)
+    photos = [render(truth, [DirectionalLight(tuple(d), (e, e, e)) if distant else
+                             PointLight(tuple(float(v) for v in p), (e, e, e))], spp=16, seed=i,
+                     texture_filter="nearest") for i, (p, d, e) in enumerate(zip(lamps, dirs, power))]
+    start = _maps(n, 0.4 * albedo, 0.5)
+    level, rough = {}, {}
+    for units in ("photos", "relative"):
+        known = KnownLights(dirs, np.repeat(power[:, None], 3, 1), "file", "lamps", "order",
+                            positions=None if distant else lamps, intensity_units=units)
+        result = refine(photos, start, RefineSettings(), lights=known, flat=True)
+        assert result.report["lights"]["power_held"] is (units == "photos")
+        assert result.report["lights"]["intensity_units"] == units
+        if units == "photos":  # written back as they were given
+            got = np.array([e["intensity"] for e in result.lights])
+            np.testing.assert_allclose(got, np.repeat(power[:, None], 3, 1), rtol=1e-4)
+        level[units] = float(result.maps.base_color.mean() / albedo.mean())
+        rough[units] = float(np.sqrt(((result.maps.roughness - 0.7) ** 2).mean()))
+    # measured: near 0.98 / 0.008, distant 1.01 / 0.010; taken as relative 4.7 / 0.125 and 4.5 / 0.131
+    assert abs(level["photos"] - 1.0) < 0.05 and rough["photos"] < 0.03, (level, rough)
+    assert abs(level["relative"] - 1.0) > 0.5 and rough["relative"] > 3 * rough["photos"], (level, rough)
+
+
 def test_found_lamps_keep_only_the_fine_tilts():
     """A found lamp's error tilts the fit smoothly across the sample: the tilts larger than a share of the width go,
     the texture's fine ones stay (most of them: this random texture has some energy at the larger scales too)."""

@@ -1,6 +1,7 @@
 """Light files (`matcap.lightfiles`): every format, matching rows to photos, and every malformed case."""
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -112,6 +113,24 @@ def test_lights_json_ambient_only_beside_intensities(tmp_path):
     write_lights(tmp_path / "rig.json", entries, intensity_known=False)
     rig = read_light_file(tmp_path / "rig.json", PHOTOS)
     assert rig.intensities is None and rig.ambient is None and rig.record()["ambient"] == "fitted"
+
+
+def test_lights_json_says_what_its_intensities_are(tmp_path):
+    """``intensity_units``: "photos" (the photos' own units, power included) is read and kept through a pick of the
+    photos; a file without the key is relative; any other value is one line naming it."""
+    entries = [{"index": i, "file": PHOTOS[i], "kind": "directional", "direction": list(DIRS[i]),
+                "intensity": [2.0, 2.0, 2.0], "sh": [[0.0] * 3] * 9} for i in range(4)]
+    write_lights(tmp_path / "abs.json", entries, intensity_units="photos")
+    known = read_light_file(tmp_path / "abs.json", PHOTOS)
+    assert known.intensity_units == "photos" and known.subset([1, 0]).intensity_units == "photos"
+    assert known.record()["intensity_units"] == "photos"
+    write_lights(tmp_path / "rel.json", entries)
+    assert read_light_file(tmp_path / "rel.json", PHOTOS).intensity_units == "relative"
+    doc = json.loads((tmp_path / "abs.json").read_text())
+    doc["intensity_units"] = "watts"
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    with pytest.raises(MatcapError, match="'intensity_units' must be one of relative, photos, got \"watts\""):
+        read_light_file(tmp_path / "bad.json", PHOTOS)
 
 
 def test_subset_follows_the_pick(tmp_path):

@@ -620,9 +620,14 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         lights = _to_near(torch, lights, torch.as_tensor(centre, dtype=torch.float32, device=device))
         lights.inv_distance = torch.as_tensor(inv_distance, dtype=torch.float32, device=device)
     given_log = None
+    # a flat sample's intensities in the photos' units: their power is held (the photos' scale to fit units alone).
+    # An object's photos hold light the model does not (interreflections, a room's light on its far side): there
+    # the least-squares scale takes its share
+    power_held = given is not None and known.intensity_units == "photos" and flat is not None
     if given is not None:  # relative intensities: start from them at the least-squares overall scale
         given_log = torch.as_tensor(np.log(np.maximum(given, 1e-12)), dtype=torch.float32, device=device)
-        offset = (lights.log_intensity - given_log).mean()
+        offset = (torch.tensor(math.log(scale), dtype=torch.float32, device=device) if power_held
+                  else (lights.log_intensity - given_log).mean())
         lights.log_intensity = given_log + offset
         if known.ambient is not None and s.model.ambient != "none":  # the file's ambient, at the same scale
             amb = np.asarray(known.ambient, np.float64)
@@ -634,20 +639,21 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     # a flat sample whose lights' ratios are known: the photos set their overall power (each photo's own intensity
     # fitted leaves too much freedom for that)
     ratios_on_plane = flat is not None and given is not None and s.lights.flat_level_free
-    # distant lights whose intensities are given are taken as they are, but for that power on a flat sample; the
-    # others are fitted
-    fitted = (inv_distance is not None or given is None or ratios_on_plane) and s.lights.known_iters > 0
-    level_free = fitted and ratios_on_plane
     # nor can a plane's photos tell a constant ambient from each photo's own intensity, or, under distant lights
     # (which light it evenly), from their overall power: there it stays as given
     ambient_free = not (flat is not None and (given is None or inv_distance is None))
+    # distant lights whose intensities are given are taken as they are, but for that power on a flat sample; the
+    # others are fitted (with their power held, only what else is free: the level, the ambient)
+    fitted = ((inv_distance is not None or given is None or ratios_on_plane) and s.lights.known_iters > 0
+              and (not power_held or ratios_on_plane or (ambient_free and s.model.ambient != "none")))
+    level_free = fitted and ratios_on_plane
     ambient = ("none" if s.model.ambient == "none" else "fitted" if fitted and ambient_free
                else "given" if known.ambient is not None else "none")  # what fit.json says of it
     light_iters, level = 0, 1.0
     if fitted:
         lights, level, light_iters = _fit_intensities(torch, prob, lights, s, bar, relative_to=given_log,
-                                                      mean_held=tilt_held, level_free=level_free,
-                                                      ambient_free=ambient_free)
+                                                      power_held=power_held, mean_held=tilt_held,
+                                                      level_free=level_free, ambient_free=ambient_free)
         if level_free:  # the per-pixel solve's prior: the networks' base colour at the level the photos set
             arrays = dict(arrays, base=np.clip(arrays["base"] * level, 0.0, 1.0).astype(np.float32))
     timings["lights_s"] = time.perf_counter() - t0
@@ -683,7 +689,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     timings["total_s"] = time.perf_counter() - t_start
     report = {
         "lights": {**known.record(), "directions": "held", "ambient": ambient, "mean_normal_held": tilt_held,
-                   "base_level": round(level, 4) if level_free else None,
+                   "base_level": round(level, 4) if level_free else None, "power_held": power_held,
                    "solved_fraction": photo_report["solved_fraction"]},
         **({"flat": flat} if flat is not None else {}),
         "psnr_db": [round(p, 3) for p in out.psnr],
@@ -1146,9 +1152,11 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
 
 
 def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, relative_to=None,
-                     mean_held: bool = False, level_free: bool = False, ambient_free: bool = True):
+                     power_held: bool = False, mean_held: bool = False, level_free: bool = False,
+                     ambient_free: bool = True):
     """Lights whose directions (and a near lamp's distance) are known: their log intensities (K, 3) (with
-    ``relative_to`` (K, 3) log intensities, only one overall log scale, the colours and ratios held) and the
+    ``relative_to`` (K, 3) log intensities, only one overall log scale, the colours and ratios held; with
+    ``power_held`` as well, none: ``lights``' intensities are kept as they are) and the
     ambient's orders up to ``lights.known_ambient_order`` (with ``ambient_free`` and unless ``model.ambient`` is
     "none"; its higher orders held), fitted with the maps of the pixels ``prob``
     (anchored by the prior) under the loss of :func:`_loss`: Levenberg-Marquardt on the whole
@@ -1171,6 +1179,8 @@ def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, rela
     photo, channel = entry // 3, entry % 3
     if relative_to is None:
         start, cols_i = lights.log_intensity.reshape(-1), entry
+    elif power_held:
+        start, cols_i = lights.log_intensity.new_zeros(0), None
     else:
         start, cols_i = (lights.log_intensity - relative_to).mean().reshape(1), torch.zeros_like(entry)
     n_i = start.shape[0]
@@ -1191,7 +1201,8 @@ def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, rela
     every = torch.arange(len(prob), device=dev)
 
     def lights_of(v):
-        log_i = v[:n_i].reshape(k_count, 3) if relative_to is None else relative_to + v[0]
+        log_i = (v[:n_i].reshape(k_count, 3) if relative_to is None else lights.log_intensity if power_held
+                 else relative_to + v[0])
         sh = torch.cat([v[n_i:n_light].reshape(n_sh, terms, 3), lights.sh[:, terms:]], 1) if ambient else lights.sh
         return replace(lights, log_intensity=log_i, sh=sh)
 
@@ -1206,7 +1217,8 @@ def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, rela
         robust, q, jr, jq, st = jacobian(t, every, hl, state=True, level=level_of(v))
         albedo = ((1.0 - st["metal"])[:, None] * st["base"] / math.pi)[None]  # (1, N, 3)
         ambient_part = sh_irradiance(st["normal"], hl.sh) * albedo
-        slots = [(cols_i, flat((st["pred"] - ambient_part) * st["free"]))]  # d pred / d log intensity: the direct part
+        # d pred / d log intensity: the direct part
+        slots = [] if cols_i is None else [(cols_i, flat((st["pred"] - ambient_part) * st["free"]))]
         if ambient:  # d pred / d sh_j: the albedo times A_j Y_j(n)
             basis = sh_basis(st["normal"])
             slots += [(cols_sh[j], flat(st["free"] * albedo * (SH_A[j] * basis[:, j])[None, :, None]))

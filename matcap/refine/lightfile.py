@@ -3,6 +3,7 @@
 Schema (version 1; camera space: x right, y up, z toward the camera, as normal.exr; orthographic view along -z)::
 
     {"version": 1, "frame": "...", "colour": "...",
+     "intensity_units": "relative",           # or "photos": intensity and sh in the decoded photos' units
      "images": [{"index": 0, "file": "001.png", "kind": "directional",
                  "direction": [x, y, z],      # unit vector from the surface toward the light
                  "intensity": [r, g, b],      # irradiance on a surface facing the light
@@ -38,6 +39,9 @@ VERSION = 1
 FRAME = "camera: x right, y up, z toward the camera (as normal.exr); orthographic view along -z"
 COLOUR = "linear RGB in the units of the decoded photos"
 KINDS = ("directional", "point")
+#: What the intensities are (``intensity_units``): "relative" (their ratios only; the photos' exposure sets their
+#: power) or "photos" (in the decoded photos' linear units, power included). A document without the key: relative.
+INTENSITY_UNITS = ("relative", "photos")
 SH_COUNT = 9
 #: Real SH constants (R&H 2001), basis order Y00, Y1-1, Y10, Y11, Y2-2, Y2-1, Y20, Y21, Y22.
 SH_C0, SH_C1, SH_C2, SH_C3, SH_C4 = 0.282095, 0.488603, 1.092548, 0.315392, 0.546274
@@ -151,6 +155,10 @@ def validate_lights(doc: Any, source: str = "lights.json") -> dict:
         if e["index"] in seen:
             raise MatcapError(f"{source}: index {e['index']} appears more than once")
         seen.add(e["index"])
+    units = doc.get("intensity_units", "relative")
+    if units not in INTENSITY_UNITS:
+        raise MatcapError(f"{source}: 'intensity_units' must be one of {', '.join(INTENSITY_UNITS)}, got "
+                          f"{json.dumps(units)}")
     out = dict(doc)
     out["images"] = entries
     return out

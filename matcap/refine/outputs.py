@@ -39,12 +39,15 @@ def colour_map(value: np.ndarray, vmax: float) -> np.ndarray:
 def write_refine_outputs(folder: str | os.PathLike, result, files: Sequence[str], colour: str,
                          extra_report: dict[str, Any] | None = None, source: str = "estimated") -> list[str]:
     """Write the four refinement files into ``folder`` (each write atomic). Returns their names. ``source``:
-    where the lights came from ("file", "ball" or "estimated"), recorded in lights.json."""
+    where the lights came from ("file", "ball" or "estimated"), recorded in lights.json, and with it what their
+    intensities are: in the photos' units where the fit held the given lights' power, else relative."""
     from matcap.refine.lightfile import write_lights
 
     folder = Path(folder)
     doc = lights_document(result.lights, files, colour, result.report.get("psnr_db"))
-    write_lights(folder / "lights.json", doc["images"], photos_colour=colour, source=source)
+    given = result.report.get("lights")
+    units = "photos" if isinstance(given, dict) and given.get("power_held") else "relative"
+    write_lights(folder / "lights.json", doc["images"], photos_colour=colour, source=source, intensity_units=units)
     report = dict(result.report)
     report["files"] = list(files)
     report.update(extra_report or {})
