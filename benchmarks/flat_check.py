@@ -30,11 +30,12 @@ Each lamp's strength is set so that the brightest point of the plane receives an
 The renders use the Mitsuba variant ``renderers.variant.choose_variant`` picks (``MATCAP_MITSUBA_VARIANT=scalar_rgb``
 forces the scalar one).
 
-Methods: ``default`` (``matcap capture photos --out R --quiet``), ``lights`` (the same with ``--lights
-lights.json``), ``flat`` and ``flat+lights`` (with ``--flat``; "not available" while ``matcap capture --help`` does
-not list it), ``flat+directions`` (``--flat --lights directions.txt``, the distant lights' directions alone, so
-that the fit finds each photo's intensity; far lights only). The row ``flat plane`` is the baseline that takes
-every normal to be the camera axis.
+Methods: ``default`` (``matcap capture photos --out R --quiet``), ``lights`` (the same with ``--lights lights.json``,
+the true lights in the photos' units), ``relative-lights`` (``--lights`` with their intensities marked relative, as a
+calibration's are), ``flat`` and ``flat+lights`` (with ``--flat``; "not available" while ``matcap capture --help`` does
+not list it), ``flat+directions`` (``--flat --lights directions.txt``, the distant lights' directions alone, so that the
+fit finds each photo's intensity; far lights only). The row ``flat plane`` is the baseline that takes every normal to be
+the camera axis.
 
 Scores over the whole frame: mean angular normal error (degrees); base colour RMSE in linear RGB after one
 least-squares scale per channel (the lights' absolute intensity is unknown to a capture without ``--lights``, so
@@ -68,7 +69,7 @@ sys.path.insert(0, str(REPO))
 TEXTURES = REPO.parent / "shared" / "data" / "textures"
 
 CONDITIONS = ("near", "far")
-METHODS = ("default", "lights", "flat", "flat+lights", "flat+directions")
+METHODS = ("default", "lights", "relative-lights", "flat", "flat+lights", "flat+directions")
 #: Constants for maps a texture set lacks.
 DEFAULT_ROUGHNESS = 0.6
 DEFAULT_METALLIC = 0.0
@@ -374,11 +375,23 @@ def capture_args(method: str, folder: Path) -> list[str]:
     args = []
     if method.startswith("flat"):
         args.append("--flat")
-    if method.endswith("lights"):
+    if method in ("lights", "flat+lights"):
         args += ["--lights", str(folder / "lights.json")]
     if method.endswith("directions"):
         args += ["--lights", str(write_directions(folder))]
+    if method == "relative-lights":
+        args += ["--lights", str(write_relative(folder))]
     return args
+
+
+def write_relative(folder: Path) -> Path:
+    """``folder``/relative.json: the true lights with their intensities marked relative (their ratios alone, as a
+    calibration knows them), so that the fit sets their power from the photos."""
+    doc = json.loads((folder / "lights.json").read_text())
+    doc["intensity_units"] = "relative"
+    path = folder / "relative.json"
+    path.write_text(json.dumps(doc, indent=1))
+    return path
 
 
 def write_directions(folder: Path) -> Path:

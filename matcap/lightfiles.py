@@ -15,8 +15,9 @@ Formats (:func:`read_light_file` tells them apart by name and content):
 Directions point from the surface toward the light in the camera frame of ``normal.exr``: x right, y up, z toward
 the camera. They are normalised on reading. Intensities are relative (one overall scale is fitted) unless a
 ``lights.json`` says ``"intensity_units": "photos"``: then they, and its ambient, are in the decoded photos' linear
-units and the fit holds their power as given. Where a file gives no intensities, the fit finds one per photo. Every problem (a count or file-name mismatch, a zero or non-finite row,
-a light behind the object's plane) is one :class:`MatcapError` line naming the file and the row.
+units and the fit holds their power as given. Where a file gives no intensities, the fit finds one per photo. Every
+problem (a count or file-name mismatch, a zero or non-finite row, a light behind the object's plane) is one
+:class:`MatcapError` line naming the file and the row.
 """
 from __future__ import annotations
 

@@ -208,6 +208,11 @@ def test_given_intensities_and_ambient_are_taken_at_one_scale(glossy):
     assert res.report["smooth_tilt_removed_sigma_widths"] is None  # given lights keep every tilt
     plain = refine(photos, start, quick, lights=known)
     assert not np.any(np.array(plain.lights[0]["sh"])) and plain.report["lights"]["ambient"] == "none"
+    # intensities in the photos' units: an object still takes the least-squares scale (its photos hold light the
+    # model does not), the same result as relative ones
+    units = refine(photos, start, quick, lights=dataclasses.replace(known, intensity_units="photos"))
+    assert units.report["lights"]["intensity_units"] == "photos" and units.report["lights"]["power_held"] is False
+    np.testing.assert_array_equal(units.maps.normal, plain.maps.normal)
 
 
 def test_capture_with_known_lights_round_trips(tmp_path, tiny_weights):

@@ -16,7 +16,7 @@ Two rules, by what the pixels share:
   material without decided pixels takes the sample's typical one. A narrow or a very broad lobe is decided on
   far fewer pixels than one in between, so each decided pixel counts in its material's target by how rarely its
   roughness would be decided (:func:`decision_rates`); an undecided pixel takes the bottom of the valley of its
-  costs that the target falls nearest;
+  costs that its material's decided pixels lie nearest;
 - an object (:func:`object_targets`, :func:`follow_targets`): its pixels face every way, so a pixel that saw a
   highlight already had it in the per-pixel solve, with the full model (cast shadows, the outline's mixing), and
   keeps that fit; the others follow their material's target, and the targets come from a sample of the pixels. A
@@ -98,16 +98,6 @@ def grid_costs(torch, obs, upper, pos, normal, metal, lights, grid, noise: float
                 cost[q] = torch.minimum(cost[q], none)
             out[g] = cost.cpu().numpy()
     return out
-
-
-def base_solution(pos, normal, rough, metal, lights, obs, used):
-    """(N, 3) torch: each channel's least-squares base colour (not clipped) of N pixels at their ``normal`` (N, 3),
-    ``rough`` and ``metal`` (N,) under ``lights`` (:class:`matcap.refine.model.LightParams`) from the observations
-    ``obs`` (K, N, 3) where ``used`` (K, N, 3) is 1: the model is linear in the base colour."""
-    from matcap.refine.model import shade_base_linear
-
-    wo, irr = lights.incident(pos)
-    return _least_squares_base(*shade_base_linear(normal, rough, metal, wo, irr, lights.sh), obs, used)
 
 
 def value_scores(torch, obs, upper, pos, normal, values, lights, noise: float) -> np.ndarray:
@@ -217,6 +207,10 @@ def held_metallic(group_metal: np.ndarray, groups: np.ndarray, prior: np.ndarray
     return np.where(np.isnan(voted), np.asarray(prior, np.float32), voted).astype(np.float32)
 
 
+#: Pixels per block where a step holds a (grid, pixels) array of its own.
+CHUNK = 65536
+
+
 def material_groups(base: np.ndarray, count: int, seed: int, sample: int = 20000, iters: int = 20) -> np.ndarray:
     """(N,) int: each pixel's group, k-means of log(base colour + 0.02) (base (N, 3), 0-1) into at most ``count``
     groups, its centres found on a random subsample of ``sample`` pixels (``seed``)."""
@@ -234,7 +228,7 @@ def material_groups(base: np.ndarray, count: int, seed: int, sample: int = 20000
     for _ in range(iters):
         lab = assign(fit)
         centres = np.array([fit[lab == j].mean(0) if (lab == j).any() else centres[j] for j in range(len(centres))])
-    return np.concatenate([assign(x[i:i + 65536]) for i in range(0, n, 65536)]) if n else np.zeros(0, np.int64)
+    return np.concatenate([assign(x[i:i + CHUNK]) for i in range(0, n, CHUNK)]) if n else np.zeros(0, np.int64)
 
 
 def _vertex(costs: np.ndarray, lg: np.ndarray) -> np.ndarray:
@@ -365,6 +359,27 @@ def _descend(costs: np.ndarray, allowed: np.ndarray, start: np.ndarray) -> np.nd
     return at
 
 
+def _mean_distance(x: np.ndarray, m: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(X,) the weighted mean of |x - m| over the values ``m`` (M,) of weights ``w`` (M,), at each of ``x`` (X,)."""
+    order = np.argsort(m)
+    m, w = m[order], w[order]
+    cw, cwm = np.concatenate([[0.0], np.cumsum(w)]), np.concatenate([[0.0], np.cumsum(w * m)])
+    k = np.searchsorted(m, x)  # m[:k] below x
+    below = x * cw[k] - cwm[k]
+    above = (cwm[-1] - cwm[k]) - x * (cw[-1] - cw[k])
+    return (below + above) / max(cw[-1], 1e-300)
+
+
+def _agreeing(allowed: np.ndarray, disagreement: np.ndarray, target: np.ndarray, lg: np.ndarray) -> np.ndarray:
+    """(N,) grid index: each pixel's allowed value (allowed (G, N) bool) at which its material disagrees least
+    with its decided pixels (``disagreement`` (G, N), their weighted mean distance in log roughness from each grid
+    value); ties go to the value nearest (in log roughness) the pixel's ``target`` (N,). Where the allowed values
+    are one run, that is the one nearest the material's weighted median; where they are two valleys (a narrow lobe,
+    a broad one), the valley the material's decided pixels lie nearer."""
+    score = np.where(allowed, disagreement + 1e-9 * np.abs(lg - target[None]), np.inf)
+    return score.argmin(axis=0)
+
+
 def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
     """The value of ``x`` (M,) at which the cumulative weight ``w`` (M,) reaches half its total."""
     order = np.argsort(x)
@@ -387,11 +402,14 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
     Only the decided pixels that the model explains count toward the targets: lowest cost at most
     ``s.explained`` per observation (``observations``, photos x 3 channels; None, or no decided pixel explained:
     every decided pixel counts).
-    The others start from the allowed value nearest (in log roughness) their group's target and descend their own
-    costs to the bottom of that valley (:func:`_descend`): the target picks between a narrow lobe and a broad one,
-    the pixel's photos place it within. ``descend`` False: they stay at that allowed value (lamps found from the
-    photos themselves, whose errors each pixel's costs carry and the material's shared target averages out). Where
-    no pixel is decided the fitted roughness stays.
+    The others start from the allowed value at which their material's decided pixels (those that set its target, with
+    the same weights) disagree least, their weighted mean distance in log roughness (:func:`_agreeing`): within one
+    run of allowed values that is the one nearest the target; between a narrow lobe's valley and a broad one's, the
+    valley nearer those pixels as a whole (a colour group holding two finishes has its median between them). They
+    descend their own costs to the bottom of that valley (:func:`_descend`): the material picks the valley, the
+    pixel's photos place it within. ``descend`` False: they stay at that allowed value (lamps found from the photos
+    themselves, whose errors each pixel's costs carry and the material's shared target averages out). Where no pixel
+    is decided the fitted roughness stays.
     """
     grid = np.asarray(s.grid, np.float64)
     lg = np.log(grid)[:, None]
@@ -414,7 +432,16 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
             targets[j] = float(np.exp(_weighted_median(middle[own], weight[own])))
     typical = float(np.exp(_weighted_median(middle[evidence], weight[evidence])))
     target = np.log(np.where(np.isfinite(targets), targets, typical))[groups]
-    nearest = np.where(allowed, np.abs(lg - target[None]), np.inf).argmin(axis=0)
-    chosen = _descend(costs, allowed, nearest) if descend else nearest
+    # each material's disagreement with its decided pixels at every grid value (a column per group; the last, of
+    # every decided pixel: the typical's)
+    disagreement = np.zeros((len(grid), n_groups + 1))
+    columns = [(j, (groups == j) & evidence) for j in range(n_groups)] + [(n_groups, evidence)]
+    for j, own in columns:
+        if own.any():
+            disagreement[:, j] = _mean_distance(lg[:, 0], middle[own], weight[own])
+    column = np.where(np.isfinite(targets), np.arange(n_groups), n_groups)[groups]
+    start = np.concatenate([_agreeing(allowed[:, i:i + CHUNK], disagreement[:, column[i:i + CHUNK]],
+                                      target[i:i + CHUNK], lg) for i in range(0, n, CHUNK)])
+    chosen = _descend(costs, allowed, start) if descend else start
     rough = np.where(decided, np.exp(middle), grid[chosen]).astype(np.float32)
     return RoughnessChoice(rough, decided, groups, targets, typical=typical)

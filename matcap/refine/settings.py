@@ -243,7 +243,7 @@ class RoughnessSettings:
     factor; the others keep their fit."""
     moved_flat: float = 1.05
     """The same on a flat sample, where every pixel is scored and takes a value of its own (its best, or the bottom
-    of the valley its material's target picks), so that the choice reaches nearly every pixel."""
+    of the valley its material picks), so that the choice reaches nearly every pixel."""
     metallic_hold: float = 5.0
     """Weight of (m - m_group)^2 in the last solve, m_group each material group's metallic, 0 or 1, as the photos
     of a sample of its pixels vote (:func:`matcap.refine.roughness.group_metallic`; a group whose vote is not
