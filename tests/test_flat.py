@@ -183,17 +183,12 @@ def test_flat_fit_under_given_lamps_takes_the_lights_power_from_the_photos(dista
     is far too dark; with the level held to the networks' it stays dark and the roughness takes up the difference."""
     from matcap.lightfiles import KnownLights
     from matcap.refine import RefineSettings, refine
-    from renderers.relight import render
-    from scenes.lights import DirectionalLight, PointLight
 
     n, albedo = _swatch(48)
     lamps = _lamps(12, (1.0, 2.0))
     dirs = lamps / np.linalg.norm(lamps, axis=1, keepdims=True)
-    power = np.array([2.0 if distant else 2.0 * (p @ p) for p in lamps])
-    truth = _maps(n, albedo, 0.3)
-    photos = [render(truth, [DirectionalLight(tuple(d), (e, e, e)) if distant else
-                             PointLight(tuple(float(v) for v in p), (e, e, e))], spp=16, seed=i,
-                     texture_filter="nearest") for i, (p, d, e) in enumerate(zip(lamps, dirs, power))]
+    power = np.array([2.0 if distant else 2.0 * (p @ p) for p in lamps])  # as _photos renders them
+    photos = _photos(n, albedo, lamps, distant, roughness=0.3)
     known = KnownLights(dirs, np.repeat(0.1 * power[:, None], 3, 1), "file", "lamps", "order",
                         positions=None if distant else lamps)
     start = _maps(n, 0.4 * albedo, 0.5)  # the networks' base colour 2.5 times too dark
@@ -220,18 +215,13 @@ def test_flat_fit_holds_the_power_of_lights_given_in_the_photos_units(distant):
     lobe's roughness."""
     from matcap.lightfiles import KnownLights
     from matcap.refine import RefineSettings, refine
-    from renderers.relight import render
-    from scenes.lights import DirectionalLight, PointLight
 
     n, albedo = _swatch(48, seed=3)
     albedo = 0.2 * albedo  # a dark sample: the highlight is a large share of what the photos show
     lamps = _lamps(12, (1.0, 2.0), seed=4)
     dirs = lamps / np.linalg.norm(lamps, axis=1, keepdims=True)
-    power = np.array([2.0 if distant else 2.0 * (p @ p) for p in lamps])
-    truth = _maps(n, albedo, 0.7)
-    photos = [render(truth, [DirectionalLight(tuple(d), (e, e, e)) if distant else
-                             PointLight(tuple(float(v) for v in p), (e, e, e))], spp=16, seed=i,
-                     texture_filter="nearest") for i, (p, d, e) in enumerate(zip(lamps, dirs, power))]
+    power = np.array([2.0 if distant else 2.0 * (p @ p) for p in lamps])  # as _photos renders them
+    photos = _photos(n, albedo, lamps, distant, roughness=0.7)
     start = _maps(n, 0.4 * albedo, 0.5)
     level, rough = {}, {}
     for units in ("photos", "relative"):
