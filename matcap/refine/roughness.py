@@ -426,19 +426,17 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
     if not evidence.any():
         evidence = decided
     targets = np.full(n_groups, np.nan)
+    # each material's disagreement with its decided pixels at every grid value: a column per group with a target of
+    # its own; the last, of every decided pixel (the typical's)
+    disagreement = np.zeros((len(grid), n_groups + 1))
     for j in range(n_groups):
         own = (groups == j) & evidence
         if own.sum() >= s.min_decided:
             targets[j] = float(np.exp(_weighted_median(middle[own], weight[own])))
-    typical = float(np.exp(_weighted_median(middle[evidence], weight[evidence])))
-    target = np.log(np.where(np.isfinite(targets), targets, typical))[groups]
-    # each material's disagreement with its decided pixels at every grid value (a column per group; the last, of
-    # every decided pixel: the typical's)
-    disagreement = np.zeros((len(grid), n_groups + 1))
-    columns = [(j, (groups == j) & evidence) for j in range(n_groups)] + [(n_groups, evidence)]
-    for j, own in columns:
-        if own.any():
             disagreement[:, j] = _mean_distance(lg[:, 0], middle[own], weight[own])
+    typical = float(np.exp(_weighted_median(middle[evidence], weight[evidence])))
+    disagreement[:, n_groups] = _mean_distance(lg[:, 0], middle[evidence], weight[evidence])
+    target = np.log(np.where(np.isfinite(targets), targets, typical))[groups]
     column = np.where(np.isfinite(targets), np.arange(n_groups), n_groups)[groups]
     start = np.concatenate([_agreeing(allowed[:, i:i + CHUNK], disagreement[:, column[i:i + CHUNK]],
                                       target[i:i + CHUNK], lg) for i in range(0, n, CHUNK)])
