@@ -498,10 +498,11 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     ``flat``: the photos show a flat sample facing the camera: without ``lights``, its lamps are found from the
     falloff of their light over the plane (:func:`matcap.refine.flat.flat_lights`) and held like known ones; where
     the falloff does not place them (distant lamps), the networks' maps are kept (the photos of a plane under
-    distant lights cannot tell the lights apart) and the lights fitted to them, but for the normals: every one is
-    the camera axis (the plane's own; on rendered flat samples the networks' normals came out further from the
-    truth than that, on every one). ``found_lamps``: what :func:`matcap.refine.flat.flat_lights` returned for these
-    photos and ``maps.mask``, where the caller found them already (the 8-bit decoding's choice): not found again.
+    distant lights hold its relief only up to its sign and depth) and the lights fitted to them, but for the
+    normals: every one is the camera axis (the plane's own; on rendered flat samples the networks' normals came out
+    further from the truth than that, on every one). ``found_lamps``: what :func:`matcap.refine.flat.flat_lights`
+    returned for these photos and ``maps.mask``, where the caller found them already (the 8-bit decoding's choice):
+    not found again.
     """
     import torch
 
@@ -1485,8 +1486,9 @@ def _object_radius(mask: np.ndarray) -> float:
 
 
 #: Why a flat sample under distant lamps keeps the networks' maps (fit.json ``linear`` ``reason``).
-FLAT_DISTANT = ("a flat sample under distant lamps: its photos, of one plane, cannot tell the lights apart (the "
-                "lamps' falloff over it did not place them), so its normal map is the plane's (the camera axis)")
+FLAT_DISTANT = ("a flat sample under distant lamps: its photos hold its relief only up to the relief's sign and "
+                "depth (the lamps' falloff over it did not place them), so its normal map is the plane's (the camera "
+                "axis)")
 
 
 def _refine_estimated(torch, images, maps: MaterialMaps, s: RefineSettings, progress,
