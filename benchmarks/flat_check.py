@@ -34,7 +34,9 @@ Methods: ``default`` (``matcap capture photos --out R --quiet``), ``lights`` (th
 the true lights in the photos' units), ``relative-lights`` (``--lights`` with their intensities marked relative, as a
 calibration's are), ``flat`` and ``flat+lights`` (with ``--flat``; "not available" while ``matcap capture --help`` does
 not list it), ``flat+directions`` (``--flat --lights directions.txt``, the distant lights' directions alone, so that the
-fit finds each photo's intensity; far lights only). The row ``flat plane`` is the baseline that takes every normal to be
+fit finds each photo's intensity; far lights only), ``flat+guessed-directions`` (the same with directions as a user
+who noted only which way each lamp stood would write them: every elevation 45 degrees, each azimuth off by a random
+15 degrees, standard deviation; far lights only). The row ``flat plane`` is the baseline that takes every normal to be
 the camera axis.
 
 Scores over the whole frame: mean angular normal error (degrees); base colour RMSE in linear RGB after one
@@ -60,6 +62,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -69,7 +72,12 @@ sys.path.insert(0, str(REPO))
 TEXTURES = REPO.parent / "shared" / "data" / "textures"
 
 CONDITIONS = ("near", "far")
-METHODS = ("default", "lights", "relative-lights", "flat", "flat+lights", "flat+directions")
+METHODS = ("default", "lights", "relative-lights", "flat", "flat+lights", "flat+directions",
+           "flat+guessed-directions")
+#: ``flat+guessed-directions``: every light's elevation written as this (degrees above the sample's plane) ...
+GUESSED_ELEVATION_DEG = 45.0
+#: ... and its azimuth off the true one by a normal random error of this standard deviation (degrees)
+GUESSED_AZIMUTH_SD_DEG = 15.0
 #: Constants for maps a texture set lacks.
 DEFAULT_ROUGHNESS = 0.6
 DEFAULT_METALLIC = 0.0
@@ -377,8 +385,10 @@ def capture_args(method: str, folder: Path) -> list[str]:
         args.append("--flat")
     if method in ("lights", "flat+lights"):
         args += ["--lights", str(folder / "lights.json")]
-    if method.endswith("directions"):
+    if method == "flat+directions":
         args += ["--lights", str(write_directions(folder))]
+    if method == "flat+guessed-directions":
+        args += ["--lights", str(write_guessed_directions(folder))]
     if method == "relative-lights":
         args += ["--lights", str(write_relative(folder))]
     return args
@@ -400,6 +410,27 @@ def write_directions(folder: Path) -> Path:
     doc = json.loads((folder / "lights.json").read_text())
     path = folder / "directions.txt"
     path.write_text("".join(" ".join(f"{v:.9f}" for v in e["direction"]) + "\n" for e in doc["images"]))
+    return path
+
+
+def guessed_directions(directions: np.ndarray, seed: int) -> np.ndarray:
+    """(K, 3) unit directions as a user who noted only which way each lamp stood would write them: each true
+    direction's azimuth (``directions`` (K, 3), unit, z up) off by a normal random error of
+    :data:`GUESSED_AZIMUTH_SD_DEG` (seeded by ``seed``), every elevation :data:`GUESSED_ELEVATION_DEG`."""
+    d = np.asarray(directions, np.float64)
+    rng = np.random.default_rng([seed, 45])
+    az = np.arctan2(d[:, 1], d[:, 0]) + np.radians(rng.normal(0.0, GUESSED_AZIMUTH_SD_DEG, len(d)))
+    return _unit(np.full(len(d), np.radians(GUESSED_ELEVATION_DEG)), az)
+
+
+def write_guessed_directions(folder: Path) -> Path:
+    """``folder``/guessed_directions.txt: :func:`guessed_directions` of the true distant lights, one ``x y z`` row per
+    photo in the photos' order, seeded by the sample's set name (the same guesses on every run)."""
+    doc = json.loads((folder / "lights.json").read_text())
+    seed = zlib.crc32(folder.name.encode())
+    rows = guessed_directions(np.array([e["direction"] for e in doc["images"]]), seed)
+    path = folder / "guessed_directions.txt"
+    path.write_text("".join(" ".join(f"{v:.9f}" for v in r) + "\n" for r in rows))
     return path
 
 

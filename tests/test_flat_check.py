@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -126,6 +127,27 @@ def test_written_sample_reads_back(tmp_path):
         assert np.array_equal(read_exr(folder / "gt" / "normal.exr"), maps.normal)
         assert np.array_equal(read_exr(folder / "gt" / "roughness.exr"), maps.roughness)
         assert json.loads((folder / "sample.json").read_text())["condition"] == cond
+
+
+def test_guessed_directions_keep_the_side_and_guess_the_height(tmp_path):
+    """flat+guessed-directions: every elevation 45 degrees, each azimuth off by a seeded random error of 15 degrees
+    (standard deviation), the same file on every run."""
+    true = F.make_lights("far", 400, seed=3)
+    d = np.array([light.direction for light in true])
+    guess = F.guessed_directions(d, seed=7)
+    assert np.allclose(np.linalg.norm(guess, axis=1), 1.0)
+    assert np.allclose(np.degrees(np.arcsin(guess[:, 2])), F.GUESSED_ELEVATION_DEG)
+    off = np.degrees(np.angle(np.exp(1j * (np.arctan2(guess[:, 1], guess[:, 0]) - np.arctan2(d[:, 1], d[:, 0])))))
+    assert abs(off.mean()) < 2.5 and 13.5 < off.std() < 16.5, (off.mean(), off.std())
+    assert np.array_equal(guess, F.guessed_directions(d, seed=7))
+    assert not np.allclose(guess, F.guessed_directions(d, seed=8))
+    folder = tmp_path / "set_far"
+    F.write_sample(folder, _uniform(8, base=0.25), true[:4], [np.zeros((8, 8, 3), np.float32)] * 4,
+                   {"condition": "far"})
+    rows = np.loadtxt(F.write_guessed_directions(folder))
+    assert rows.shape == (4, 3) and np.allclose(rows, F.guessed_directions(d[:4], zlib.crc32(b"set_far")), atol=1e-8)
+    assert F.capture_args("flat+guessed-directions", folder) == ["--flat", "--lights",
+                                                                 str(folder / "guessed_directions.txt")]
 
 
 def test_scores_on_constructed_maps():
