@@ -425,7 +425,7 @@ def guessed_directions(directions: np.ndarray, seed: int) -> np.ndarray:
 
 def write_guessed_directions(folder: Path) -> Path:
     """``folder``/guessed_directions.txt: :func:`guessed_directions` of the true distant lights, one ``x y z`` row per
-    photo in the photos' order, seeded by the sample's set name (the same guesses on every run)."""
+    photo in the photos' order, seeded by the sample's folder name (the same guesses on every run)."""
     doc = json.loads((folder / "lights.json").read_text())
     seed = zlib.crc32(folder.name.encode())
     rows = guessed_directions(np.array([e["direction"] for e in doc["images"]]), seed)
