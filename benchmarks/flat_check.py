@@ -408,8 +408,12 @@ def write_directions(folder: Path) -> Path:
     """``folder``/directions.txt: the true distant lights' directions alone, one ``x y z`` row per photo in the
     photos' order (a plain light table: each photo's intensity is left to the fit)."""
     doc = json.loads((folder / "lights.json").read_text())
-    path = folder / "directions.txt"
-    path.write_text("".join(" ".join(f"{v:.9f}" for v in e["direction"]) + "\n" for e in doc["images"]))
+    return _write_table(folder / "directions.txt", [e["direction"] for e in doc["images"]])
+
+
+def _write_table(path: Path, rows) -> Path:
+    """``path``: a plain light table, one ``x y z`` row per photo (``rows`` (K, 3)), in the photos' order."""
+    path.write_text("".join(" ".join(f"{v:.9f}" for v in r) + "\n" for r in rows))
     return path
 
 
@@ -429,9 +433,7 @@ def write_guessed_directions(folder: Path) -> Path:
     doc = json.loads((folder / "lights.json").read_text())
     seed = zlib.crc32(folder.name.encode())
     rows = guessed_directions(np.array([e["direction"] for e in doc["images"]]), seed)
-    path = folder / "guessed_directions.txt"
-    path.write_text("".join(" ".join(f"{v:.9f}" for v in r) + "\n" for r in rows))
-    return path
+    return _write_table(folder / "guessed_directions.txt", rows)
 
 
 def run_capture(method: str, folder: Path) -> tuple[Path, float | None, str | None]:
