@@ -320,6 +320,7 @@ def test_pooling_takes_the_neighbourhoods_roughness_where_the_photos_allow_it():
 
     from matcap.refine.fit import _Problem, _pool_brdf
     from matcap.refine.model import LightParams, PixelParams, shade_base_linear, shade_fast
+    from matcap.refine.roughness import _least_squares_base
     from matcap.refine.settings import RefineSettings
 
     side = 24
@@ -357,7 +358,7 @@ def test_pooling_takes_the_neighbourhoods_roughness_where_the_photos_allow_it():
                     torch.device("cpu"))
     with torch.no_grad():  # each pixel's base colour as a fit at its start roughness gives it: least squares
         p0, a = shade_base_linear(prob.n0, prob.r0, prob.m0, *lights.incident(prob.pos), lights.sh)
-        fitted_base = (a * (prob.obs - p0)).sum(0) / (a * a).sum(0).clamp(min=1e-12)
+        fitted_base = _least_squares_base(p0, a, prob.obs, torch.ones_like(prob.obs))
     px = PixelParams.from_maps(prob.n0, fitted_base.clamp(0.0, 1.0), prob.r0, prob.m0)
     pooled, share = _pool_brdf(torch, prob, px, lights, (side, side), RefineSettings())
     with torch.no_grad():
