@@ -44,17 +44,23 @@ def _maps(n, albedo, roughness: float = 0.6) -> MaterialMaps:
                         metallic=np.zeros(mask.shape, np.float32))
 
 
+def _power(lamps, distant: bool = False) -> np.ndarray:
+    """(K,) what :func:`_photos` gives each light: irradiance 2 (distant lights), or the radiant intensity that
+    makes a point lamp's irradiance at the centre 2."""
+    return np.array([2.0 if distant else 2.0 * (p @ p) for p in lamps])
+
+
 def _photos(n, albedo, lamps, distant: bool = False, roughness: float = 0.6):
     """Mitsuba renders of the swatch (Principled, of that roughness) under point lamps at ``lamps`` of equal
-    irradiance at the centre, or under distant lights from those directions; one texel per pixel."""
+    irradiance at the centre, or under distant lights from those directions (powers :func:`_power`); one texel per
+    pixel."""
     from renderers.relight import render
     from scenes.lights import DirectionalLight, PointLight
 
     out = []
-    for p in lamps:
-        e = 2.0
+    for p, e in zip(lamps, _power(lamps, distant)):
         light = (DirectionalLight(tuple(p / np.linalg.norm(p)), (e, e, e)) if distant else
-                 PointLight(tuple(float(v) for v in p), (e * (p @ p),) * 3))
+                 PointLight(tuple(float(v) for v in p), (e, e, e)))
         out.append(render(_maps(n, albedo, roughness), [light], spp=16, seed=len(out), texture_filter="nearest"))
     return out
 
@@ -187,7 +193,7 @@ def test_flat_fit_under_given_lamps_takes_the_lights_power_from_the_photos(dista
     n, albedo = _swatch(48)
     lamps = _lamps(12, (1.0, 2.0))
     dirs = lamps / np.linalg.norm(lamps, axis=1, keepdims=True)
-    power = np.array([2.0 if distant else 2.0 * (p @ p) for p in lamps])  # as _photos renders them
+    power = _power(lamps, distant)
     photos = _photos(n, albedo, lamps, distant, roughness=0.3)
     known = KnownLights(dirs, np.repeat(0.1 * power[:, None], 3, 1), "file", "lamps", "order",
                         positions=None if distant else lamps)
@@ -220,7 +226,7 @@ def test_flat_fit_holds_the_power_of_lights_given_in_the_photos_units(distant):
     albedo = 0.2 * albedo  # a dark sample: the highlight is a large share of what the photos show
     lamps = _lamps(12, (1.0, 2.0), seed=4)
     dirs = lamps / np.linalg.norm(lamps, axis=1, keepdims=True)
-    power = np.array([2.0 if distant else 2.0 * (p @ p) for p in lamps])  # as _photos renders them
+    power = _power(lamps, distant)
     photos = _photos(n, albedo, lamps, distant, roughness=0.7)
     start = _maps(n, 0.4 * albedo, 0.5)
     level, rough = {}, {}
