@@ -659,24 +659,23 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
             arrays = dict(arrays, base=np.clip(arrays["base"] * level, 0.0, 1.0).astype(np.float32))
     timings["lights_s"] = time.perf_counter() - t0
 
-    # ---- 2. per pixel
+    # ---- 2. per pixel (lamps found from the falloff: first rounds of the per-pixel stage on the light-fit copy,
+    # each followed by the intensities refitted to its maps)
     t0 = time.perf_counter()
-    full, px_full, mixing, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s, bar,
-                                            s.pixels.coarse_iters, s.pixels.fine_iters, shadow=shadow)
-    restarts = None
-    if s.pixels.restart_deg > 0 and s.pixels.restart_rounds > 0:
-        restarts = {"tried": [], "kept": []}
-        for _ in range(s.pixels.restart_rounds):
-            px_full, done = _neighbour_restarts(torch, full, px_full, lights, s, bar, mixing, mask)
-            restarts["tried"].append(done["tried"])
-            restarts["kept"].append(done["kept"])
-    choice = None
-    if s.roughness.iters > 0 and s.model.fit_brdf:
-        t_r = time.perf_counter()
-        px_full, choice = _roughness_stage(torch, full, px_full, lights, s, bar, mixing, plane=flat is not None,
-                                           lights_found=known.source == "estimated")
-        px_full, pooled_share = _pool_brdf(torch, full, px_full, lights, mask.shape, s)
-        timings["roughness_s"] = time.perf_counter() - t_r
+    rounds = s.lights.found_lamps_rounds if known.source == "estimated" and fitted else 0
+    found = known.source == "estimated"
+    for _ in range(rounds):
+        copy, px_l = _per_pixel_stage(torch, obs_l, mask_l, w_l, sat_level, arr_l, start_l, lights, s, bar, shadow,
+                                      plane=flat is not None, lights_found=found)[:2]
+        lights, more, start_l = _refit_intensities(torch, obs_l, mask_l, w_l, sat_level, arr_l, copy, px_l, lights,
+                                                   s, bar, rng, shadow, ambient_free)
+        light_iters += more
+        start = start_l if hw_l == (h, w) else _unit(_resize(start_l, (h, w), "linear"))
+    full, px_full, mixing, iters_done, restarts, choice, pooled_share, rough_s = _per_pixel_stage(
+        torch, obs, mask, weight, sat_level, arrays, start, lights, s, bar, shadow, plane=flat is not None,
+        lights_found=found)
+    if choice is not None:
+        timings["roughness_s"] = rough_s
     detail = s.pixels.found_lamps_detail if known.source == "estimated" else 0.0
     if detail > 0:
         px_full = _plane_detail(torch, full, px_full, mask, detail)
@@ -696,7 +695,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         "psnr_db": [round(p, 3) for p in out.psnr],
         "psnr_db_mean": round(float(np.mean(out.psnr)), 3),
         "residual_mean": round(float(np.nanmean(out.residual)), 5),
-        "iterations": {"lights": light_iters, **iters_done, "roughness": s.roughness.iters if choice else 0},
+        "iterations": {"lights": light_iters, **iters_done, "roughness": s.roughness.iters if choice else 0,
+                       "intensity_rounds": rounds},
         "pixels": int(mask.sum()),
         "images": k_count,
         "normal_change_deg_mean": round(out.normal_change_deg, 3),
@@ -716,6 +716,58 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     }
     return RefineResult(out.maps, lights_to_entries(lights, scale), report, out.residual, ph.variation, ph.warning,
                         out.prediction)
+
+
+def _per_pixel_stage(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarray], start, lights,
+                     s: RefineSettings, bar, shadow: float, plane: bool, lights_found: bool):
+    """Known lights' per-pixel stage under the fixed ``lights``: the solve (:func:`_solve_maps`: photos ``obs``
+    (K, H, W, 3) in fit units, ``mask`` (H, W), ``weight`` (H, W), ``sat_level`` (K, 3), priors ``arrays``, start
+    normals ``start`` (H, W, 3) or None), the neighbour restarts, the roughness stage (``plane``, ``lights_found``:
+    see :func:`_roughness_stage`) and the pooling. Returns (problem, params, outline mixing, iterations, restarts
+    record, roughness choice or None, pooled share, roughness stage seconds)."""
+    full, px_full, mixing, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s,
+                                                    bar, s.pixels.coarse_iters, s.pixels.fine_iters, shadow=shadow)
+    restarts = None
+    if s.pixels.restart_deg > 0 and s.pixels.restart_rounds > 0:
+        restarts = {"tried": [], "kept": []}
+        for _ in range(s.pixels.restart_rounds):
+            px_full, done = _neighbour_restarts(torch, full, px_full, lights, s, bar, mixing, mask)
+            restarts["tried"].append(done["tried"])
+            restarts["kept"].append(done["kept"])
+    choice, pooled_share, rough_s = None, 0.0, 0.0
+    if s.roughness.iters > 0 and s.model.fit_brdf:
+        t_r = time.perf_counter()
+        px_full, choice = _roughness_stage(torch, full, px_full, lights, s, bar, mixing, plane=plane,
+                                           lights_found=lights_found)
+        px_full, pooled_share = _pool_brdf(torch, full, px_full, lights, mask.shape, s)
+        rough_s = time.perf_counter() - t_r
+    return full, px_full, mixing, iters_done, restarts, choice, pooled_share, rough_s
+
+
+def _refit_intensities(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarray], full: _Problem, px,
+                       lights, s: RefineSettings, bar, rng, shadow: float, ambient_free: bool):
+    """Each photo's intensity (and the ambient's fitted orders, with ``ambient_free``) fitted again
+    (:func:`_fit_intensities`) on ``lights.known_pixels`` pixels of the photos ``obs`` (K, H, W, 3) off the
+    outline of ``mask``, their maps started from and anchored to the per-pixel stage's (``px`` of the problem
+    ``full``; ``arrays`` off it). Returns (lights, iterations done, (H, W, 3) the stage's normals: the next
+    stage's start)."""
+    fitted = {k: v.copy() for k, v in arrays.items()}
+    with torch.no_grad():
+        for key, value in (("normal", px.normal()), ("base", px.base()), ("rough", px.rough()),
+                           ("metal", px.metal())):
+            fitted[key][full.rows, full.cols] = value.cpu().numpy()
+    inner = np.flatnonzero(~outline_zone(mask, s.pixels.outline)[mask])
+    inner = inner if len(inner) else np.arange(int(mask.sum()))
+    idx = np.sort(rng.choice(inner, size=min(len(inner), s.lights.known_pixels), replace=False))
+    prob = _Problem(torch, obs, mask, fitted, weight, sat_level, torch.device(s.device), idx, fitted["normal"],
+                    shadow=shadow)
+    lights, _, done = _fit_intensities(torch, prob, lights, s, bar, ambient_free=ambient_free)
+    return lights, done, fitted["normal"]
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    """``v`` (..., 3) scaled to unit length."""
+    return (v / np.linalg.norm(v, axis=-1, keepdims=True).clip(1e-6)).astype(np.float32)
 
 
 def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, mixing: "_Mixing | None",

@@ -97,6 +97,12 @@ class LightStageSettings:
     """A flat sample whose lights' relative intensities are known (a light file's lamps or distant lights with
     intensities): the base colour's prior holds the networks' pattern only, not its level (one factor on it is solved
     with the lights), so that the photos set the lights' overall power."""
+    found_lamps_rounds: int = 2
+    """A flat sample whose lamps were found from their falloff: rounds of refitting each photo's intensity (and the
+    ambient's fitted orders) to the per-pixel stage's maps, each followed by the per-pixel stage again. The first
+    fit anchors its pixels' maps to the networks', whose roughness and relief a glossy sample's highlights do not
+    follow; the intensities then trade with the specular (a photo's intensity off by a few percent moves the
+    roughness of every pixel its highlight crosses). 0: the first fit's intensities are kept."""
     flat_mean_held: bool = True
     """A flat sample whose given lights come without intensities: the light fit's pixels keep a mean normal
     gradient (x and y of ``n / n_z``) of 0. The sample's mean normal is the camera axis; without it a photo's
