@@ -608,10 +608,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         start_l, _ = _photo_normals(obs_l, mask_l, guess_l, s_lum, photo_report, positions=known.positions,
                                     max_misfit=misfit)
         arr_l = dict(arr_l, normal=start_l)
-    # the subsample leaves out the outline, whose pixels mix the object with what lies behind it
-    inner = np.flatnonzero(~outline_zone(mask_l, s.pixels.outline)[mask_l])
-    inner = inner if len(inner) else np.arange(int(mask_l.sum()))
-    idx = np.sort(rng.choice(inner, size=min(len(inner), s.lights.known_pixels), replace=False))
+    idx = _known_subsample(mask_l, s, rng)
     # no cast-shadow rule for a flat sample (a plane facing the camera shades itself only through its small
     # relief) nor for found lamps (their errors would pass for shadow)
     shadow = 0.0 if known.source == "estimated" or flat is not None else s.loss.shadow
@@ -756,13 +753,20 @@ def _refit_intensities(torch, obs, mask, weight, sat_level, arrays: dict[str, np
         for key, value in (("normal", px.normal()), ("base", px.base()), ("rough", px.rough()),
                            ("metal", px.metal())):
             fitted[key][full.rows, full.cols] = value.cpu().numpy()
-    inner = np.flatnonzero(~outline_zone(mask, s.pixels.outline)[mask])
-    inner = inner if len(inner) else np.arange(int(mask.sum()))
-    idx = np.sort(rng.choice(inner, size=min(len(inner), s.lights.known_pixels), replace=False))
+    idx = _known_subsample(mask, s, rng)
     prob = _Problem(torch, obs, mask, fitted, weight, sat_level, torch.device(s.device), idx, fitted["normal"],
                     shadow=shadow)
     lights, _, done = _fit_intensities(torch, prob, lights, s, bar, ambient_free=ambient_free)
     return lights, done, fitted["normal"]
+
+
+def _known_subsample(mask: np.ndarray, s: RefineSettings, rng) -> np.ndarray:
+    """(S,) sorted indices, among ``mask``'s pixels, of the known lights' light-fit pixels: ``lights.known_pixels``
+    drawn by ``rng`` off the outline (whose pixels mix the object with what lies behind it; all pixels where the
+    mask is all outline)."""
+    inner = np.flatnonzero(~outline_zone(mask, s.pixels.outline)[mask])
+    inner = inner if len(inner) else np.arange(int(mask.sum()))
+    return np.sort(rng.choice(inner, size=min(len(inner), s.lights.known_pixels), replace=False))
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
