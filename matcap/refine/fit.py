@@ -659,8 +659,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     # ---- 2. per pixel (lamps found from the falloff: first rounds of the per-pixel stage on the light-fit copy,
     # each followed by the intensities refitted to its maps)
     t0 = time.perf_counter()
-    rounds = s.lights.found_lamps_rounds if known.source == "estimated" and fitted else 0
     found = known.source == "estimated"
+    rounds = s.lights.found_lamps_rounds if found and fitted else 0
     for _ in range(rounds):
         copy, px_l = _per_pixel_stage(torch, obs_l, mask_l, w_l, sat_level, arr_l, start_l, lights, s, bar, shadow,
                                       plane=flat is not None, lights_found=found)[:2]
@@ -673,7 +673,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         lights_found=found)
     if choice is not None:
         timings["roughness_s"] = rough_s
-    detail = s.pixels.found_lamps_detail if known.source == "estimated" else 0.0
+    detail = s.pixels.found_lamps_detail if found else 0.0
     if detail > 0:
         px_full = _plane_detail(torch, full, px_full, mask, detail)
     timings["maps_s"] = time.perf_counter() - t0

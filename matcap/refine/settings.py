@@ -98,8 +98,8 @@ class LightStageSettings:
     intensities): the base colour's prior holds the networks' pattern only, not its level (one factor on it is solved
     with the lights), so that the photos set the lights' overall power."""
     found_lamps_rounds: int = 2
-    """A flat sample whose lamps were found from their falloff: rounds of refitting each photo's intensity (and the
-    ambient's fitted orders) to the per-pixel stage's maps, each followed by the per-pixel stage again. The first
+    """A flat sample whose lamps were found from their falloff: rounds of the per-pixel stage on the light-fit copy,
+    each followed by each photo's intensity fitted again to that stage's maps, before the full-size stage. The first
     fit anchors its pixels' maps to the networks', whose roughness and relief a glossy sample's highlights do not
     follow; the intensities then trade with the specular (a photo's intensity off by a few percent moves the
     roughness of every pixel its highlight crosses). 0: the first fit's intensities are kept."""
