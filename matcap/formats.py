@@ -33,6 +33,7 @@ from matcap.normals import (  # noqa: F401  (part of this module's API)
     encode_normal,
     tangent_frame,
     tangent_to_camera,
+    unit_normals,
 )
 from scenes.atomic import write_json_atomic
 from scenes.materialmaps import MaterialMaps

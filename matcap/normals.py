@@ -14,6 +14,16 @@ FOLD_Z = 1e-3
 NORMAL_CONVENTIONS = ("gl", "dx")
 
 
+def unit_normals(n: np.ndarray) -> np.ndarray:
+    """``n`` (..., 3) scaled to unit length, float32; vectors shorter than 1e-6 become (0, 0, 1), facing the
+    camera."""
+    n = np.asarray(n, np.float32)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    flat = np.zeros_like(n)
+    flat[..., 2] = 1.0
+    return np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), flat).astype(np.float32)
+
+
 def tangent_frame(normal: np.ndarray, mask: np.ndarray, frame: str = "camera") -> np.ndarray:
     """3×3 matrix whose rows are T, B, N of the flat sample in camera space.
 

@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from matcap.errors import MatcapError
+from matcap.normals import unit_normals
 from scenes.materialmaps import MaterialMaps
 
 MIN_SIZE = 16
@@ -424,7 +425,7 @@ def tile_maps(maps: MaterialMaps, size: int | None = None, *, what: str = "--siz
     sq = MaterialMaps(normal=square(maps.normal), mask=np.ones((p + k, p + k), bool),
                       base_color=square(maps.base_color),
                       roughness=square(maps.roughness), metallic=square(maps.metallic), meta=dict(maps.meta))
-    sq.normal = _unit(sq.normal)
+    sq.normal = unit_normals(sq.normal)
     stack, groups = _stack(sq)
     scale = {name: max(float(np.mean(np.var(stack[..., sl], axis=(0, 1)))), 1e-6) for name, sl in groups.items()}
     src_r, src_c, cut = cut_shifts(stack, p, groups, scale)
@@ -432,7 +433,7 @@ def tile_maps(maps: MaterialMaps, size: int | None = None, *, what: str = "--siz
     values: dict[str, np.ndarray] = {}
     for name, sl in groups.items():
         v = out[..., sl]
-        values[name] = _unit(v) if name == "normal" else np.clip(v if v.shape[2] > 1 else v[..., 0], 0.0, 1.0)
+        values[name] = unit_normals(v) if name == "normal" else np.clip(v if v.shape[2] > 1 else v[..., 0], 0.0, 1.0)
     normal, tilt = level(values.pop("normal"))
     height = integrate_normals(normal, None, "periodic")
     tiled = MaterialMaps(normal=normal, mask=np.ones((p, p), bool), height=height, meta=dict(maps.meta), **values)
@@ -471,14 +472,6 @@ def level(normal: np.ndarray) -> tuple[np.ndarray, float]:
     return camera_to_tangent(normal, mask, frame), tilt
 
 
-def _unit(n: np.ndarray) -> np.ndarray:
-    n = np.asarray(n, np.float32)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
-    flat = np.zeros_like(n)
-    flat[..., 2] = 1.0
-    return np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), flat).astype(np.float32)
-
-
 def is_tiled(maps: MaterialMaps) -> bool:
     """Maps already made seamless by :func:`tile_maps` (their ``meta`` records the tiling and they are square)."""
     h, w = maps.shape
@@ -496,7 +489,7 @@ def preview(maps: MaterialMaps, *, repeats: int = 3, tile_px: int = PREVIEW_TILE
     p = maps.shape[0]
     t = min(tile_px, p)
     small = MaterialMaps(
-        normal=_unit(_resize(maps.normal, t)), mask=np.ones((t, t), bool),
+        normal=unit_normals(_resize(maps.normal, t)), mask=np.ones((t, t), bool),
         base_color=None if maps.base_color is None else _resize(maps.base_color, t),
         roughness=None if maps.roughness is None else _resize(maps.roughness, t),
         metallic=None if maps.metallic is None else _resize(maps.metallic, t))

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 
 from matcap.errors import MatcapError
+from matcap.normals import unit_normals
 from matcap.refine.settings import RefineSettings
 from scenes.materialmaps import MaterialMaps
 
@@ -128,8 +129,7 @@ def _maps_arrays(maps: MaterialMaps) -> dict[str, np.ndarray]:
     m = maps.with_defaults()
     n = np.asarray(m.normal, np.float32).copy()
     n[~m.mask] = (0.0, 0.0, 1.0)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True).clip(1e-6)
-    return {"normal": n, "base": np.clip(np.nan_to_num(m.base_color), 0, 1).astype(np.float32),
+    return {"normal": unit_normals(n), "base": np.clip(np.nan_to_num(m.base_color), 0, 1).astype(np.float32),
             "rough": np.clip(np.nan_to_num(m.roughness, nan=0.5), 0, 1).astype(np.float32),
             "metal": np.clip(np.nan_to_num(m.metallic), 0, 1).astype(np.float32)}
 
@@ -145,7 +145,7 @@ def _downsample(stack: np.ndarray, mask: np.ndarray, arrays: dict[str, np.ndarra
         out[k] = _resize(v, hw)
     for k in ("normal", "start"):
         if k in out:
-            out[k] = out[k] / np.linalg.norm(out[k], axis=-1, keepdims=True).clip(1e-6)
+            out[k] = unit_normals(out[k])
     return small, m, out
 
 
@@ -667,7 +667,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         lights, more, start_l = _refit_intensities(torch, obs_l, mask_l, w_l, sat_level, arr_l, copy, px_l, lights,
                                                    s, bar, rng, shadow, ambient_free)
         light_iters += more
-        start = start_l if hw_l == (h, w) else _unit(_resize(start_l, (h, w), "linear"))
+        start = start_l if hw_l == (h, w) else unit_normals(_resize(start_l, (h, w), "linear"))
     full, px_full, mixing, iters_done, restarts, choice, pooled_share, rough_s = _per_pixel_stage(
         torch, obs, mask, weight, sat_level, arrays, start, lights, s, bar, shadow, plane=flat is not None,
         lights_found=found)
@@ -767,11 +767,6 @@ def _known_subsample(mask: np.ndarray, s: RefineSettings, rng) -> np.ndarray:
     inner = np.flatnonzero(~outline_zone(mask, s.pixels.outline)[mask])
     inner = inner if len(inner) else np.arange(int(mask.sum()))
     return np.sort(rng.choice(inner, size=min(len(inner), s.lights.known_pixels), replace=False))
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    """``v`` (..., 3) scaled to unit length."""
-    return (v / np.linalg.norm(v, axis=-1, keepdims=True).clip(1e-6)).astype(np.float32)
 
 
 def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, mixing: "_Mixing | None",
