@@ -661,9 +661,11 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     t0 = time.perf_counter()
     found = known.source == "estimated"
     rounds = s.lights.found_lamps_rounds if found and fitted else 0
+    rounds_rough_s = 0.0  # the rounds' roughness stages, counted in timings.roughness_s with the full-size one
     for _ in range(rounds):
-        copy, px_l = _per_pixel_stage(torch, obs_l, mask_l, w_l, sat_level, arr_l, start_l, lights, s, bar, shadow,
-                                      plane=flat is not None, lights_found=found)[:2]
+        stage = _per_pixel_stage(torch, obs_l, mask_l, w_l, sat_level, arr_l, start_l, lights, s, bar, shadow,
+                                 plane=flat is not None, lights_found=found)
+        copy, px_l, rounds_rough_s = stage[0], stage[1], rounds_rough_s + stage[7]
         lights, more, start_l = _refit_intensities(torch, obs_l, mask_l, w_l, sat_level, arr_l, copy, px_l, lights,
                                                    s, bar, rng, shadow, ambient_free)
         light_iters += more
@@ -672,7 +674,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         torch, obs, mask, weight, sat_level, arrays, start, lights, s, bar, shadow, plane=flat is not None,
         lights_found=found)
     if choice is not None:
-        timings["roughness_s"] = rough_s
+        timings["roughness_s"] = rough_s + rounds_rough_s
     detail = s.pixels.found_lamps_detail if found else 0.0
     if detail > 0:
         px_full = _plane_detail(torch, full, px_full, mask, detail)
