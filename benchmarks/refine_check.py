@@ -37,10 +37,12 @@ sys.path.insert(0, str(REPO))
 SHARED = REPO.parent / "shared" / "data" / "captures"
 
 
-def _models():
+def _models(args):
+    """The networks of ``--weights`` (as ``matcap capture --weights``: a candidate scored before it is installed),
+    else the installed defaults."""
     from matcap.capture import load_networks
 
-    return load_networks(None)
+    return load_networks(args.weights)
 
 
 def _settings(args):
@@ -111,7 +113,7 @@ def sphere(args) -> None:
     print("| ToyPS sphere, K=16 (--linear, seed 0) | mean deg | median deg | re-render PSNR dB | s | check |")
     print("|---|---:|---:|---:|---:|---|")
     t0 = time.perf_counter()
-    maps = estimate(cap.images, cap.mask, models=_models(), max_images=16, seed=0)
+    maps = estimate(cap.images, cap.mask, models=_models(args), max_images=16, seed=0)
     t_net = time.perf_counter() - t0
     from matcap.evaluation.metrics import angular_error_map
 
@@ -133,7 +135,7 @@ def uw(args) -> None:
     from matcap.refine import refine
     from matcap.refine.fit import fit_light_only
 
-    models = _models()
+    models = _models(args)
     names = args.objects.split(",")
     print(f"UW captures (8-bit taken as linear, all 12 images, --max-side {args.max_side}); normals vs least "
           f"squares with the true lights (mean deg); light directions vs lights.txt (median deg); re-render PSNR; "
@@ -183,7 +185,7 @@ def synthetic(args) -> None:
     from matcap.refine import refine
     from matcap.results import read_result
 
-    models = _models()
+    models = _models(args)
     if not args.data:
         sys.exit("synthetic: give --data SPLIT (e.g. `matcap synth --out SPLIT --scenes 48 --resolution 128 --seed 7 "
                  "--assets ../shared/data --split test`)")
@@ -251,7 +253,7 @@ def samples(args) -> None:
     from matcap.refine import synthetic as S
     from scenes.materialmaps import MaterialMaps
 
-    models = _models()
+    models = _models(args)
     wood = load_maps(SHARED.parent / "textures" / "wood_table_worn", max_side=256).with_defaults()
     side = 192
     height = ndimage.gaussian_filter(np.random.default_rng(0).normal(size=(side, side)), 6)
@@ -291,7 +293,7 @@ def dome(args) -> None:
     from matcap.refine import refine
     from matcap.refine import synthetic as S
 
-    models = _models()
+    models = _models(args)
     wood = load_maps(SHARED.parent / "textures" / "wood_table_worn", max_side=args.side)
     lights = S.known_lights(16, seed=3, max_angle_deg=45.0, kind="point" if args.dome_light == "point" else
                             "directional", distance=args.lamp_distance)
@@ -338,7 +340,7 @@ def detail(args) -> None:
     from matcap.refine import refine
     from matcap.refine import synthetic as S
 
-    models = _models()
+    models = _models(args)
     tex = load_maps(SHARED.parent / "textures" / args.texture, max_side=args.side)
     lights = S.known_lights(16, seed=3, max_angle_deg=45.0)
     grid = round(1.1 * args.side / 128, 2)  # the networks' interleaved 128 px tiles: a grid of period side / 128 px
@@ -524,6 +526,9 @@ def main(argv=None) -> int:
                     help="detail: the normal map laid on the dome as it is (textured_dome), not integrated into a "
                          "relief")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    ap.add_argument("--weights", action="append", metavar="FILE",
+                    help="network weights instead of the installed ones, as `matcap capture --weights` (repeatable: "
+                         "a normal and a BRDF model), e.g. a training run's best.safetensors")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="a RefineSettings field for the fit, group.field=value (repeatable), e.g. lights.iters=0")
     args = ap.parse_args(argv)
