@@ -663,9 +663,10 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     rounds = s.lights.found_lamps_rounds if found and fitted else 0
     rounds_rough_s = 0.0  # the rounds' roughness stages, counted in timings.roughness_s with the full-size one
     for _ in range(rounds):
-        stage = _per_pixel_stage(torch, obs_l, mask_l, w_l, sat_level, arr_l, start_l, lights, s, bar, shadow,
-                                 plane=flat is not None, lights_found=found)
-        copy, px_l, rounds_rough_s = stage[0], stage[1], rounds_rough_s + stage[7]
+        copy, px_l, *_, round_rough_s = _per_pixel_stage(torch, obs_l, mask_l, w_l, sat_level, arr_l, start_l,
+                                                         lights, s, bar, shadow, plane=flat is not None,
+                                                         lights_found=found)
+        rounds_rough_s += round_rough_s
         lights, more, start_l = _refit_intensities(torch, obs_l, mask_l, w_l, sat_level, arr_l, copy, px_l, lights,
                                                    s, bar, rng, shadow, ambient_free)
         light_iters += more
