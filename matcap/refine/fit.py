@@ -35,6 +35,7 @@ import numpy as np
 
 from matcap.errors import MatcapError
 from matcap.normals import unit_normals
+from matcap.refine.flat import PLACED_BY_STEREO
 from matcap.refine.settings import RefineSettings
 from scenes.materialmaps import MaterialMaps
 
@@ -657,16 +658,28 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     timings["lights_s"] = time.perf_counter() - t0
 
     # ---- 2. per pixel (lamps found from the falloff: first rounds of the per-pixel stage on the light-fit copy,
-    # each followed by the intensities refitted to its maps)
+    # each followed by the lamps placed again with its maps and the intensities refitted to them)
     t0 = time.perf_counter()
     found = known.source == "estimated"
     rounds = s.lights.found_lamps_rounds if found and fitted else 0
     rounds_rough_s = 0.0  # the rounds' roughness stages, counted in timings.roughness_s with the full-size one
+    moved: list[float] = []  # each round's median angle (degrees, seen from the centre) the lamps moved by
+    # the lamps the plane under the Principled BSDF placed are that model's own answer with the sample's mean normal
+    # held and stay; those of the near-light photometric stereo, whose heights the falloff holds weakly, are placed
+    # again with each round's maps
+    place_again = (rounds > 0 and s.lights.found_lamps_steps > 0 and lights.kind == "near"
+                   and (flat or {}).get("placed_by") == PLACED_BY_STEREO)
     for _ in range(rounds):
         copy, px_l, *_, round_rough_s = _per_pixel_stage(torch, obs_l, mask_l, w_l, sat_level, arr_l, start_l,
                                                          lights, s, bar, shadow, plane=flat is not None,
                                                          lights_found=found)
         rounds_rough_s += round_rough_s
+        if place_again:
+            px_l = _plane_detail(torch, copy, px_l, mask_l, s.pixels.found_lamps_detail)
+            placed = _place_lamps(torch, obs_l, mask_l, w_l, sat_level, arr_l, copy, px_l, lights, s, bar, rng,
+                                  shadow)
+            moved.append(_median_angle_deg(torch, lights, placed))
+            lights = placed
         lights, more, start_l = _refit_intensities(torch, obs_l, mask_l, w_l, sat_level, arr_l, copy, px_l, lights,
                                                    s, bar, rng, shadow, ambient_free)
         light_iters += more
@@ -690,7 +703,8 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     report = {
         "lights": {**known.record(), "directions": "held", "ambient": ambient, "mean_normal_held": tilt_held,
                    "base_level": round(level, 4) if level_free else None, "power_held": power_held,
-                   "solved_fraction": photo_report["solved_fraction"]},
+                   "solved_fraction": photo_report["solved_fraction"],
+                   **({"found_lamps_moved_deg": moved} if found else {})},
         **({"flat": flat} if flat is not None else {}),
         "psnr_db": [round(p, 3) for p in out.psnr],
         "psnr_db_mean": round(float(np.mean(out.psnr)), 3),
@@ -761,6 +775,36 @@ def _refit_intensities(torch, obs, mask, weight, sat_level, arrays: dict[str, np
                     shadow=shadow)
     lights, _, done = _fit_intensities(torch, prob, lights, s, bar, ambient_free=ambient_free)
     return lights, done, fitted["normal"]
+
+
+def _place_lamps(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarray], full: _Problem, px, lights,
+                 s: RefineSettings, bar, rng, shadow: float):
+    """Found lamps (``lights``, "near") placed again: their directions, distances, intensities and ambient fitted
+    (:func:`_fit_lights`, ``lights.found_lamps_steps`` steps) together with the maps of ``lights.known_pixels``
+    pixels of the photos ``obs`` (K, H, W, 3) off the outline of ``mask``, started from and anchored to the
+    per-pixel stage's maps (``px`` of the problem ``full``, their wide tilts already taken out; ``arrays`` off it),
+    the normals' gradient field free but for its smooth part (a polynomial of degree
+    ``lights.found_lamps_tilt_degree`` in the plane's position), held at zero. Returns the lamps."""
+    fitted = {k: v.copy() for k, v in arrays.items()}
+    with torch.no_grad():
+        for key, value in (("normal", px.normal()), ("base", px.base()), ("rough", px.rough()),
+                           ("metal", px.metal())):
+            fitted[key][full.rows, full.cols] = value.cpu().numpy()
+    idx = _known_subsample(mask, s, rng)
+    prob = _Problem(torch, obs, mask, fitted, weight, sat_level, torch.device(s.device), idx, fitted["normal"],
+                    shadow=shadow)
+    steps = s.lights.found_lamps_steps
+    bar.add_total(steps)
+    placed, _ = _fit_lights(torch, prob, lights.detached(), s, bar, "lamps", steps,
+                            smooth_tilt_held=s.lights.found_lamps_tilt_degree
+                            if s.lights.found_lamps_tilt_degree >= 0 else None)
+    return placed
+
+
+def _median_angle_deg(torch, before, after) -> float:
+    """Median angle (degrees) between two sets of lights' directions (K, 3), seen from their centre."""
+    cos = (before.directions() * after.directions()).sum(-1).clamp(-1.0, 1.0)
+    return round(float(torch.rad2deg(torch.arccos(cos)).median()), 3)
 
 
 def _known_subsample(mask: np.ndarray, s: RefineSettings, rng) -> np.ndarray:
@@ -1144,10 +1188,12 @@ class _Adam:
 
 
 def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: str, iters: int,
-                maps_free: bool = True):
+                maps_free: bool = True, smooth_tilt_held: int | None = None):
     """Estimated lights: Adam on the lights, their directions (and a near lamp's distance) included, and, with
     ``maps_free``, on the subsample's maps, anchored by the prior, under the full loss :func:`_loss` of the pixels
-    ``prob`` (the caller adds the steps to the progress total). Each step's loss and gradient are the sums of
+    ``prob`` (the caller adds the steps to the progress total). ``smooth_tilt_held``: a polynomial degree; the part
+    of the pixels' normal gradients that such a polynomial in their plane positions explains is taken out at the
+    start and after every step (a flat sample has no smooth tilt). Each step's loss and gradient are the sums of
     those of the two halves of the pixels, computed side by side where torch has two threads or more (each on
     one-thread operations), so the result does not depend on the thread count. Returns (lights, a copy without
     gradients; the last step's mean data term)."""
@@ -1161,6 +1207,13 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
     groups = [(light_t, s.lights.lr)]
     if maps_free:
         groups.append((px.tensors(), s.lights.lr_pixel))
+    smooth = None
+    if smooth_tilt_held is not None and maps_free:  # (N, N) projection onto the polynomial fields of the plane
+        x, y = prob.pos[:, 0], prob.pos[:, 1]
+        basis = torch.stack([x ** i * y ** j for i in range(smooth_tilt_held + 1)
+                             for j in range(smooth_tilt_held + 1 - i)], 1)
+        smooth = (basis, torch.linalg.pinv(basis))
+        px.grad -= smooth[0] @ (smooth[1] @ px.grad)
     leaves = [t for tensors, _ in groups for t in tensors]
     for t in leaves:
         t.requires_grad_(True)
@@ -1192,6 +1245,9 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
                     gs = [p[2][i] for p in parts if p[2][i] is not None]
                     t.grad = sum(gs[1:], gs[0]) if gs else None
                 opt.step()
+                if smooth is not None:
+                    with torch.no_grad():
+                        px.grad -= smooth[0] @ (smooth[1] @ px.grad)
                 if near:  # a negative inverse distance, or a direction behind the framing plane, would put the
                     with torch.no_grad():  # lamp where it lights nothing the camera sees
                         lights.inv_distance.clamp_(min=0.0)

@@ -97,12 +97,23 @@ class LightStageSettings:
     """A flat sample whose lights' relative intensities are known (a light file's lamps or distant lights with
     intensities): the base colour's prior holds the networks' pattern only, not its level (one factor on it is solved
     with the lights), so that the photos set the lights' overall power."""
-    found_lamps_rounds: int = 2
-    """A flat sample whose lamps were found from their falloff: rounds of the per-pixel stage on the light-fit copy,
-    each followed by each photo's intensity fitted again to that stage's maps, before the full-size stage. The first
-    fit anchors its pixels' maps to the networks', whose roughness and relief a glossy sample's highlights do not
-    follow; the intensities then trade with the specular (a photo's intensity off by a few percent moves the
-    roughness of every pixel its highlight crosses). 0: the first fit's intensities are kept."""
+    found_lamps_rounds: int = 3
+    """A flat sample whose lamps were found from their falloff: rounds of the per-pixel stage on the light-fit copy
+    before the full-size stage, each followed by the lamps placed again with that stage's maps
+    (``found_lamps_steps``) and each photo's intensity fitted again to them. The falloff leaves a lamp's height
+    weakly held (a lower lamp and a steeper relief explain it about alike), and the first fit anchors its pixels'
+    maps to the networks', whose roughness and relief a glossy sample's highlights do not follow; the intensities
+    then trade with the specular (a photo's intensity off by a few percent moves the roughness of every pixel its
+    highlight crosses). 0: the lamps and the first fit's intensities are kept."""
+    found_lamps_steps: int = 300
+    """Adam steps, in each of those rounds, of the lamps' positions, intensities and ambient fitted together with
+    the maps of ``known_pixels`` pixels of the light-fit copy (started from and anchored to the round's maps, their
+    tilts wider than ``pixels.found_lamps_detail`` taken out), the normals' smooth tilt held at zero
+    (``found_lamps_tilt_degree``). 0: the lamps stay where the falloff put them."""
+    found_lamps_tilt_degree: int = 2
+    """While the lamps are placed again, the part of the normals' gradient field (x and y of ``n / n_z``) that a
+    polynomial of this degree in the plane's position explains is held at zero: a misplaced lamp shows as such a
+    smooth tilt across the sample, which a flat sample does not have. -1: none is held."""
     flat_mean_held: bool = True
     """A flat sample whose given lights come without intensities: the light fit's pixels keep a mean normal
     gradient (x and y of ``n / n_z``) of 0. The sample's mean normal is the camera axis; without it a photo's
