@@ -35,7 +35,6 @@ import numpy as np
 
 from matcap.errors import MatcapError
 from matcap.normals import unit_normals
-from matcap.refine.flat import PLACED_BY_STEREO
 from matcap.refine.settings import RefineSettings
 from scenes.materialmaps import MaterialMaps
 
@@ -664,11 +663,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     rounds = s.lights.found_lamps_rounds if found and fitted else 0
     rounds_rough_s = 0.0  # the rounds' roughness stages, counted in timings.roughness_s with the full-size one
     moved: list[float] = []  # each round's median angle (degrees, seen from the centre) the lamps moved by
-    # the lamps the plane under the Principled BSDF placed are that model's own answer with the sample's mean normal
-    # held and stay; those of the near-light photometric stereo, whose heights the falloff holds weakly, are placed
-    # again with each round's maps
-    place_again = (rounds > 0 and s.lights.found_lamps_steps > 0 and lights.kind == "near"
-                   and (flat or {}).get("placed_by") == PLACED_BY_STEREO)
+    place_again = rounds > 0 and s.lights.found_lamps_steps > 0 and lights.kind == "near"
     for _ in range(rounds):
         copy, px_l, *_, round_rough_s = _per_pixel_stage(torch, obs_l, mask_l, w_l, sat_level, arr_l, start_l,
                                                          lights, s, bar, shadow, plane=flat is not None,
