@@ -753,13 +753,11 @@ def _per_pixel_stage(torch, obs, mask, weight, sat_level, arrays: dict[str, np.n
     return full, px_full, mixing, iters_done, restarts, choice, pooled_share, rough_s
 
 
-def _refit_intensities(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarray], full: _Problem, px,
-                       lights, s: RefineSettings, bar, rng, shadow: float, ambient_free: bool):
-    """Each photo's intensity (and the ambient's fitted orders, with ``ambient_free``) fitted again
-    (:func:`_fit_intensities`) on ``lights.known_pixels`` pixels of the photos ``obs`` (K, H, W, 3) off the
-    outline of ``mask``, their maps started from and anchored to the per-pixel stage's (``px`` of the problem
-    ``full``; ``arrays`` off it). Returns (lights, iterations done, (H, W, 3) the stage's normals: the next
-    stage's start)."""
+def _stage_subsample(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarray], full: _Problem, px,
+                     s: RefineSettings, rng, shadow: float) -> tuple[_Problem, dict[str, np.ndarray]]:
+    """The per-pixel stage's maps (``px`` of the problem ``full``, written over ``arrays``) and a problem of
+    ``lights.known_pixels`` pixels of the photos ``obs`` (K, H, W, 3) off the outline of ``mask``, drawn by ``rng``,
+    started from and anchored to those maps. Returns (that problem, the maps as (H, W, ...) arrays)."""
     fitted = {k: v.copy() for k, v in arrays.items()}
     with torch.no_grad():
         for key, value in (("normal", px.normal()), ("base", px.base()), ("rough", px.rough()),
@@ -768,6 +766,17 @@ def _refit_intensities(torch, obs, mask, weight, sat_level, arrays: dict[str, np
     idx = _known_subsample(mask, s, rng)
     prob = _Problem(torch, obs, mask, fitted, weight, sat_level, torch.device(s.device), idx, fitted["normal"],
                     shadow=shadow)
+    return prob, fitted
+
+
+def _refit_intensities(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarray], full: _Problem, px,
+                       lights, s: RefineSettings, bar, rng, shadow: float, ambient_free: bool):
+    """Each photo's intensity (and the ambient's fitted orders, with ``ambient_free``) fitted again
+    (:func:`_fit_intensities`) on ``lights.known_pixels`` pixels of the photos ``obs`` (K, H, W, 3) off the
+    outline of ``mask``, their maps started from and anchored to the per-pixel stage's (``px`` of the problem
+    ``full``; ``arrays`` off it). Returns (lights, iterations done, (H, W, 3) the stage's normals: the next
+    stage's start)."""
+    prob, fitted = _stage_subsample(torch, obs, mask, weight, sat_level, arrays, full, px, s, rng, shadow)
     lights, _, done = _fit_intensities(torch, prob, lights, s, bar, ambient_free=ambient_free)
     return lights, done, fitted["normal"]
 
@@ -780,14 +789,7 @@ def _place_lamps(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarr
     per-pixel stage's maps (``px`` of the problem ``full``, their wide tilts already taken out; ``arrays`` off it),
     the normals' gradient field free but for its smooth part (a polynomial of degree
     ``lights.found_lamps_tilt_degree`` in the plane's position), held at zero. Returns the lamps."""
-    fitted = {k: v.copy() for k, v in arrays.items()}
-    with torch.no_grad():
-        for key, value in (("normal", px.normal()), ("base", px.base()), ("rough", px.rough()),
-                           ("metal", px.metal())):
-            fitted[key][full.rows, full.cols] = value.cpu().numpy()
-    idx = _known_subsample(mask, s, rng)
-    prob = _Problem(torch, obs, mask, fitted, weight, sat_level, torch.device(s.device), idx, fitted["normal"],
-                    shadow=shadow)
+    prob, _ = _stage_subsample(torch, obs, mask, weight, sat_level, arrays, full, px, s, rng, shadow)
     steps = s.lights.found_lamps_steps
     bar.add_total(steps)
     placed, _ = _fit_lights(torch, prob, lights.detached(), s, bar, "lamps", steps,
