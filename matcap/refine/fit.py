@@ -783,8 +783,9 @@ def _refit_intensities(torch, obs, mask, weight, sat_level, arrays: dict[str, np
 
 def _place_lamps(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarray], full: _Problem, px, lights,
                  s: RefineSettings, bar, rng, shadow: float):
-    """Found lamps (``lights``, "near") placed again: their directions, distances, intensities and ambient fitted
-    (:func:`_fit_lights`, ``lights.found_lamps_steps`` steps) together with the maps of ``lights.known_pixels``
+    """Found lamps (``lights``, "near") placed again: their directions, distances and intensities fitted
+    (:func:`_fit_lights`, ``lights.found_lamps_steps`` steps; the ambient held: a plane's photos cannot tell a room's
+    light from each photo's intensity) together with the maps of ``lights.known_pixels``
     pixels of the photos ``obs`` (K, H, W, 3) off the outline of ``mask``, started from and anchored to the
     per-pixel stage's maps (``px`` of the problem ``full``, their wide tilts already taken out; ``arrays`` off it),
     the normals' gradient field free but for its smooth part (a polynomial of degree
@@ -794,7 +795,7 @@ def _place_lamps(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarr
     bar.add_total(steps)
     placed, _ = _fit_lights(torch, prob, lights.detached(), s, bar, "lamps", steps,
                             smooth_tilt_held=s.lights.found_lamps_tilt_degree
-                            if s.lights.found_lamps_tilt_degree >= 0 else None)
+                            if s.lights.found_lamps_tilt_degree >= 0 else None, ambient_free=False)
     return placed
 
 
@@ -1185,10 +1186,11 @@ class _Adam:
 
 
 def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: str, iters: int,
-                maps_free: bool = True, smooth_tilt_held: int | None = None):
+                maps_free: bool = True, smooth_tilt_held: int | None = None, ambient_free: bool = True):
     """Estimated lights: Adam on the lights, their directions (and a near lamp's distance) included, and, with
     ``maps_free``, on the subsample's maps, anchored by the prior, under the full loss :func:`_loss` of the pixels
-    ``prob`` (the caller adds the steps to the progress total). ``smooth_tilt_held``: a polynomial degree; the part
+    ``prob`` (the caller adds the steps to the progress total); the SH ambient too with ``ambient_free`` (and
+    unless ``model.ambient`` is "none"). ``smooth_tilt_held``: a polynomial degree; the part
     of the pixels' normal gradients that such a polynomial in their plane positions explains is taken out at the
     start and after every step (a flat sample has no smooth tilt). Each step's loss and gradient are the sums of
     those of the two halves of the pixels, computed side by side where torch has two threads or more (each on
@@ -1199,7 +1201,7 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
     from matcap.refine.model import PixelParams
 
     px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
-    light_t = ([lights.sh] if s.model.ambient != "none" else []) + [lights.log_intensity, lights.vec]
+    light_t = ([lights.sh] if s.model.ambient != "none" and ambient_free else []) + [lights.log_intensity, lights.vec]
     light_t += [lights.inv_distance] if lights.kind == "near" else []
     groups = [(light_t, s.lights.lr)]
     if maps_free:
