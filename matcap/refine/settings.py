@@ -147,7 +147,7 @@ class CheckSettings:
     inliers: float = 0.85
     """... with this share of inlier observations (these two: distant lights on a matte-like surface; only the
     first candidate light model must pass them);"""
-    solved: float = 0.5
+    solved: float = 0.6
     """... under the lights found, this share of the pixels must get a Lambertian normal facing the camera;"""
     spread: float = 0.02
     """... and the photos' third singular value must be at least this share of the first (a flat sample's
