@@ -604,11 +604,6 @@ def _placed(residual: float, residual_distant: float) -> bool:
     return residual_distant >= NEAR_FLOOR and residual <= NEAR_GAIN * residual_distant
 
 
-#: fit.json ``flat.placed_by``: which step of :func:`plane_lamps` placed the lamps
-PLACED_BY_PLANE = "the plane under the Principled BSDF"
-PLACED_BY_STEREO = "near-light photometric stereo"
-
-
 class FlatLights(NamedTuple):
     """What :func:`flat_lights` found for a flat sample's photos."""
 
@@ -632,7 +627,8 @@ def flat_lights(images, mask: np.ndarray, on_stage=None) -> FlatLights:
         return FlatLights(None, record)
     record.update({"distance_widths_median": round(float(np.median(widths)), 3),
                    "distance_widths": [round(float(v), 3) for v in widths], "sample_width": round(lamps.width, 5),
-                   "placed_by": PLACED_BY_PLANE if lamps.plane_placed else PLACED_BY_STEREO, "residual_plane": round(lamps.residual_plane, 5),
+                   "placed_by": "the plane under the Principled BSDF" if lamps.plane_placed else
+                   "near-light photometric stereo", "residual_plane": round(lamps.residual_plane, 5),
                    "plane_roughness": round(lamps.roughness, 3)})
     known = KnownLights(lamps.directions.astype(np.float64), None, "estimated", "", "order",
                         lamps.positions.astype(np.float64))
