@@ -106,7 +106,7 @@ class LightStageSettings:
     then trade with the specular (a photo's intensity off by a few percent moves the roughness of every pixel its
     highlight crosses). 0: the lamps and the first fit's intensities are kept."""
     found_lamps_steps: int = 300
-    """Adam steps, in each of those rounds, of the lamps' positions, intensities and ambient fitted together with
+    """Adam steps, in each of those rounds, of the lamps' positions and intensities (the ambient held) fitted with
     the maps of ``known_pixels`` pixels of the light-fit copy (started from and anchored to the round's maps, their
     tilts wider than ``pixels.found_lamps_detail`` taken out), the normals' smooth tilt held at zero
     (``found_lamps_tilt_degree``). 0: the lamps stay where the falloff put them."""
