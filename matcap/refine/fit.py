@@ -663,7 +663,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     rounds = s.lights.found_lamps_rounds if found and fitted else 0
     rounds_rough_s = 0.0  # the rounds' roughness stages, counted in timings.roughness_s with the full-size one
     moved: list[float] = []  # each round's median angle (degrees, seen from the centre) the lamps moved by
-    place_again = rounds > 0 and s.lights.found_lamps_steps > 0 and lights.kind == "near"
+    place_again = s.lights.found_lamps_steps > 0  # found lamps come with positions: "near" lights
     for _ in range(rounds):
         copy, px_l, *_, round_rough_s = _per_pixel_stage(torch, obs_l, mask_l, w_l, sat_level, arr_l, start_l,
                                                          lights, s, bar, shadow, plane=flat is not None,
