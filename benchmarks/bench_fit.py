@@ -90,13 +90,18 @@ def steps(threads: int, repeats: int = 5) -> dict:
     if threads:
         torch.set_num_threads(threads)
     from matcap.refine import RefineSettings
-    from matcap.refine import fit as F
+    try:  # the fit's stages, one module each
+        from matcap.refine import light_stage as L
+        from matcap.refine import photos as P
+    except ImportError:  # an --old revision whose fit is one module
+        from matcap.refine import fit as L
+        P = L
     from matcap.refine.model import LightParams, PixelParams, shade_jacobian
 
     truth, dirs, obs, start = _sphere(160)
     k, m = len(dirs), truth.mask
     s = RefineSettings(seed=0)
-    arrays = F._maps_arrays(start)
+    arrays = P._maps_arrays(start)
     out = {}
 
     def best(run) -> float:
@@ -109,21 +114,21 @@ def steps(threads: int, repeats: int = 5) -> dict:
 
     def problem(count):
         idx = np.sort(np.random.default_rng(0).choice(int(m.sum()), size=count, replace=False))
-        return F._Problem(torch, obs, m, arrays, np.ones(m.shape, np.float32), np.full((k, 3), np.inf, np.float32),
+        return P._Problem(torch, obs, m, arrays, np.ones(m.shape, np.float32), np.full((k, 3), np.inf, np.float32),
                           torch.device("cpu"), idx)
 
     def start_lights():
         return LightParams("directional", dirs.clone(), torch.full((k, 3), 0.5), torch.zeros(1, 9, 3))
 
     estimated, known = problem(4096), problem(2048)
-    out["light_fit_4096_ms"] = best(lambda: F._fit_lights(torch, estimated, start_lights(), s, F._Bar(None, s),
+    out["light_fit_4096_ms"] = best(lambda: L._fit_lights(torch, estimated, start_lights(), s, P._Bar(None, s),
                                                           "lights", 50)) / 50 * 1000
 
     def known_fit():
-        if hasattr(F, "_fit_intensities"):
-            F._fit_intensities(torch, known, start_lights(), s, F._Bar(None, s))
+        if hasattr(L, "_fit_intensities"):
+            L._fit_intensities(torch, known, start_lights(), s, P._Bar(None, s))
         else:  # revisions before the Levenberg-Marquardt fit of known directions: Adam steps
-            F._fit_lights(torch, known, start_lights(), s, F._Bar(None, s), "lights", s.lights.iters,
+            L._fit_lights(torch, known, start_lights(), s, P._Bar(None, s), "lights", s.lights.iters,
                           directions_free=False)
     out["known_fit_2048_ms"] = best(known_fit) * 1000
     count = 16384
@@ -131,7 +136,7 @@ def steps(threads: int, repeats: int = 5) -> dict:
                                                                           start.roughness, start.metallic)))
     nrm = p.normal()
     tangents = torch.stack([torch.cross(nrm, torch.tensor([1.0, 0.0, 0.0]).expand_as(nrm), dim=-1)] * 2)
-    with torch.no_grad(), F._one_thread(torch):
+    with torch.no_grad(), P._one_thread(torch):
         out["jacobian_16384_ms"] = best(lambda: shade_jacobian(nrm, p.base(), p.rough(), p.metal(), dirs[:, None],
                                                               torch.full((k, 1, 3), 2.5), torch.zeros(1, 9, 3),
                                                               tangents)) * 1000

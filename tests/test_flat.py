@@ -256,7 +256,8 @@ def test_found_lamps_keep_only_the_fine_tilts():
     the texture's fine ones stay (most of them: this random texture has some energy at the larger scales too)."""
     import torch
 
-    from matcap.refine.fit import _Problem, _plane_detail
+    from matcap.refine.photos import _Problem
+    from matcap.refine.pixel_stage import _plane_detail
     from matcap.refine.model import PixelParams
 
     n, _ = _swatch(96, tilt=0.05)
@@ -286,7 +287,8 @@ def test_intensities_refitted_to_the_maps_undo_a_few_percent_per_photo():
     true ones, the photos rendered with the fit's own model) they come back to the true ratios."""
     import torch
 
-    from matcap.refine.fit import _Bar, _Problem, _refit_intensities
+    from matcap.refine.light_stage import _refit_intensities
+    from matcap.refine.photos import _Bar, _Problem
     from matcap.refine.model import LightParams, PixelParams, shade_fast
     from matcap.refine.settings import RefineSettings
 
@@ -513,7 +515,8 @@ def test_found_lamps_placed_again_with_the_maps_come_back():
     zero, the ambient held: they come back to within 3 % of their distance."""
     import torch
 
-    from matcap.refine.fit import _Bar, _place_lamps, _Problem
+    from matcap.refine.light_stage import _place_lamps
+    from matcap.refine.photos import _Bar, _Problem
     from matcap.refine.model import LightParams, PixelParams, shade_fast
     from matcap.refine.settings import RefineSettings
 

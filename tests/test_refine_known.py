@@ -94,7 +94,7 @@ def test_a_metal_the_solve_fitted_as_a_dielectric_is_not_voted_dielectric():
 def test_neighbour_median_of_a_lone_normal():
     """A 5 x 5 patch facing the camera with its centre tilted 40 degrees: the centre's neighbours say +z; a pixel
     with no neighbour gets NaN; a neighbourhood turned away from the camera is kept facing it."""
-    from matcap.refine.fit import neighbour_median
+    from matcap.refine.pixel_stage import neighbour_median
 
     rows, cols = (a.ravel() for a in np.mgrid[0:5, 0:5])
     normal = np.tile(np.float32([0, 0, 1]), (25, 1))
@@ -131,7 +131,7 @@ def test_outline_pixels_mixed_with_the_backdrop(glossy):
     """The sphere's outline pixels cover it only half, the rest a lit grey backdrop (brighter than the sphere's
     rim, and changing from photo to photo): fitted as mixtures (``pixels.outline``) their normals come back
     closer than half the error of a fit that takes them for the object alone, and the rest stays as it was."""
-    from matcap.refine.fit import outline_zone
+    from matcap.refine.pixel_stage import outline_zone
 
     truth, lights, photos, start = glossy
     m = truth.mask
@@ -158,7 +158,7 @@ def test_start_normals_fall_back_to_the_networks_where_lambertian_fails():
     """The known-lights start normals: calibrated Lambertian least squares where that model explains a pixel's
     photos (to ``priors.lambertian_misfit``), the networks' normals where it does not (a highlight in two
     photos)."""
-    from matcap.refine.fit import _photo_normals
+    from matcap.refine.light_stage import _photo_normals
 
     rng = np.random.default_rng(0)
     k, h, w = 12, 8, 8
@@ -292,7 +292,7 @@ def test_neighbour_median_is_numpys_nanmedian_of_the_neighbours():
     as numpy's nanmedian gives it, on a random mask with holes and lone pixels."""
     import warnings
 
-    from matcap.refine.fit import neighbour_median
+    from matcap.refine.pixel_stage import neighbour_median
 
     rng = np.random.default_rng(0)
     hw = (40, 30)
@@ -320,7 +320,7 @@ def test_window_median_is_numpys_nanmedian_of_the_window():
     on a random mask (so that windows hold odd and even counts)."""
     import warnings
 
-    from matcap.refine.fit import window_median
+    from matcap.refine.pixel_stage import window_median
 
     rng = np.random.default_rng(1)
     hw = (30, 40)

@@ -233,7 +233,7 @@ def test_lights_that_leave_four_pixels_in_ten_unsolved_are_not_trusted():
     refused (a synthetic scene's near lamps at that share made its normals 8 degrees worse), 65 % pass."""
     from types import SimpleNamespace
 
-    from matcap.refine.fit import _distrust
+    from matcap.refine.light_stage import _distrust
 
     linear = SimpleNamespace(spread=0.2, residual=0.01, inliers=0.99)
     s = RefineSettings()
@@ -321,7 +321,7 @@ def test_ambient_share_of_known_lights():
     off): 0.1 / 2.1 and 0.1 / 1.1 of the irradiance."""
     import torch
 
-    from matcap.refine.fit import ambient_share
+    from matcap.refine.photos import ambient_share
     from matcap.refine.model import SH_C0, LightParams
 
     sh = torch.zeros(1, 9, 3)

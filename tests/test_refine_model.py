@@ -43,7 +43,7 @@ def test_near_lights_span_distant_and_point_lights():
     entries say so."""
     import numpy as np
 
-    from matcap.refine.fit import lights_to_entries
+    from matcap.refine.photos import lights_to_entries
     from matcap.refine.model import LightParams
 
     torch.manual_seed(0)

@@ -318,7 +318,8 @@ def test_pooling_takes_the_neighbourhoods_roughness_where_the_photos_allow_it():
     keeps its own."""
     import torch
 
-    from matcap.refine.fit import _Problem, _pool_brdf
+    from matcap.refine.brdf_stage import _pool_brdf
+    from matcap.refine.photos import _Problem
     from matcap.refine.model import LightParams, PixelParams, shade_base_linear, shade_fast
     from matcap.refine.roughness import _least_squares_base
     from matcap.refine.settings import RefineSettings

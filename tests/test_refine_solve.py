@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-import matcap.refine.fit as F
+import matcap.refine.light_stage as L
+import matcap.refine.photos as P
+import matcap.refine.pixel_stage as PX
 from matcap.evaluation.metrics import angular_error_map
 from matcap.evaluation.toy import cone_lights
 from matcap.refine import RefineSettings
@@ -184,7 +186,7 @@ def _glossy_sphere_problem(side: int = 48):
     obs = np.zeros((k,) + m.shape + (3,), np.float32)
     obs[:, m] = px * scale
     start = S.perturb(truth)
-    prob = F._Problem(torch, obs, m, F._maps_arrays(start), np.ones(m.shape, np.float32),
+    prob = P._Problem(torch, obs, m, P._maps_arrays(start), np.ones(m.shape, np.float32),
                       np.full((k, 3), np.inf, np.float32), torch.device("cpu"))
     lights = LightParams("directional", dirs.clone(), torch.log(irr * scale), torch.zeros(1, 9, 3))
     return truth, start, prob, lights, PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
@@ -198,12 +200,12 @@ def test_the_pixel_solve_converges():
     m = truth.mask
 
     def solve(settings, iters):
-        out = F._solve_pixels(torch, prob, px0, lights, settings, settings.loss.cauchy, iters,
-                              F._Bar(None, settings), "maps")
+        out = PX._solve_pixels(torch, prob, px0, lights, settings, settings.loss.cauchy, iters,
+                              P._Bar(None, settings), "maps")
         normal = np.zeros(m.shape + (3,), np.float32)
         normal[m] = out.normal().detach().numpy()
         with torch.no_grad():
-            per, _ = F._loss(torch, prob, out, lights, settings, settings.loss.cauchy)
+            per, _ = P._loss(torch, prob, out, lights, settings, settings.loss.cauchy)
         return float(angular_error_map(normal, truth.normal, m)[m].mean()), float(per.mean())
 
     s = RefineSettings(seed=0)
@@ -219,7 +221,7 @@ def test_the_pixel_solve_does_not_depend_on_the_chunks():
     outs = []
     for obs in (262144, 12 * 300, 12 * 97):  # one chunk; 300 pixels; 256 (the smallest chunk)
         s = RefineSettings(seed=0).replace({"pixels.lm_observations": obs})
-        outs.append(F._solve_pixels(torch, prob, px0, lights, s, s.loss.cauchy, 8, F._Bar(None, s), "maps"))
+        outs.append(PX._solve_pixels(torch, prob, px0, lights, s, s.loss.cauchy, 8, P._Bar(None, s), "maps"))
     assert len(prob) > 600
     for other in outs[1:]:
         assert all(torch.equal(a, b) for a, b in zip(outs[0].tensors(), other.tensors()))
@@ -229,8 +231,8 @@ def test_the_light_fit_does_not_depend_on_the_thread_count(monkeypatch):
     """The light fit sums each step's loss and gradient over two halves of its pixels, side by side where torch
     has two threads: the lights and the last data term are the same bits on one thread and on two. (The process
     is told it may use two CPUs, so that the halves run side by side on a one-CPU machine too.)"""
-    monkeypatch.setattr(F.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
-    assert F._workers(2) == 2
+    monkeypatch.setattr(P.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert P._workers(2) == 2
     _, _, prob, lights, _ = _glossy_sphere_problem(32)
     start = LightParams("directional", lights.vec.clone(), lights.log_intensity + 0.3, lights.sh.clone())
     s = RefineSettings(seed=0)
@@ -240,7 +242,7 @@ def test_the_light_fit_does_not_depend_on_the_thread_count(monkeypatch):
         for threads in (1, 2):
             torch.set_num_threads(threads)
             trial = LightParams("directional", *(t.clone() for t in start.tensors()))
-            outs.append(F._fit_lights(torch, prob, trial, s, F._Bar(None, s), "lights", 30))
+            outs.append(L._fit_lights(torch, prob, trial, s, P._Bar(None, s), "lights", 30))
     finally:
         torch.set_num_threads(was)
     (one, data_one), (two, data_two) = outs
