@@ -133,7 +133,7 @@ def uw(args) -> None:
     from matcap.evaluation.baselines import least_squares_ps
     from matcap.evaluation.datasets import load_uw_object
     from matcap.refine import refine
-    from matcap.refine.fit import fit_light_only
+    from matcap.refine.light_stage import fit_light_only
 
     models = _models(args)
     names = args.objects.split(",")
@@ -198,6 +198,7 @@ def synthetic(args) -> None:
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     acc = []
     truths = []
+    parts = []  # per scene with a backdrop: normal MAE before, after on its objects, then on the backdrop
     for sc in scenes:
         obj = load_synthetic_scene(sc)
         if args.given_only and obj.light_dirs is None:
@@ -226,6 +227,10 @@ def synthetic(args) -> None:
         row = [_mean_err(maps.normal, obj.normal_gt, m), _mean_err(res.maps.normal, obj.normal_gt, m),
                b0[0], b1[0], b0[1], b1[1], b0[2], b1[2]]
         acc.append(row)
+        objects = np.load(sc / "data.npz")["object_mask"] & m  # the scene's objects, without the backdrop
+        if objects.any() and (m & ~objects).any():
+            parts.append([_mean_err(x, obj.normal_gt, part) for part in (objects, m & ~objects)
+                          for x in (maps.normal, res.maps.normal)])
         how = "lights given" if known is not None else _check(res)
         print(f"| {sc.name} | {obj.group} | " + " | ".join(f"{v:.3f}" for v in row) + f" | {how} |", flush=True)
     print("| **mean** | | " + " | ".join(f"{v:.3f}" for v in np.mean(acc, 0)) + " | |")
@@ -233,6 +238,10 @@ def synthetic(args) -> None:
     if given:
         print("| **mean, lights given** | | " + " | ".join(f"{v:.3f}" for v in np.mean([acc[i] for i in given], 0))
               + f" | {len(given)} scenes |")
+    if parts:
+        p = np.mean(parts, 0)
+        print(f"\nnormals of the {len(parts)} scenes with a backdrop, scene means: objects {p[0]:.2f} -> "
+              f"{p[1]:.2f} deg, backdrop {p[2]:.2f} -> {p[3]:.2f} deg")
     r_const = float(np.mean(np.concatenate([t[0] for t in truths])))
     m_const = float(np.mean(np.concatenate([t[1] for t in truths])))
     rc = np.mean([np.sqrt(((t[0] - r_const) ** 2).mean()) for t in truths])
