@@ -36,17 +36,14 @@ from matcap.errors import MatcapError
 from matcap.normals import unit_normals
 from matcap.refine.brdf_stage import _pool_brdf, _roughness_stage
 from matcap.refine.light_stage import (
-    CHECK_NAMES, Candidate, RECORD_KEYS, _Check, _LightStage, _check, _fit_intensities, _init_lights, _judge,
-    _light_stage, _median_angle_deg, _photo_normals, _place_lamps, _refit_intensities, _to_near, candidate_models,
-    known_irradiance,
+    CHECK_NAMES, Candidate, RECORD_KEYS, _Check, _LightStage, _check, _judge, _known_light_stage, _light_stage,
+    _median_angle_deg, _place_lamps, _refit_intensities, candidate_models,
 )
 from matcap.refine.photos import (
-    LUMA, _Bar, _Photos, _Problem, _centre, _irradiance_parts, _luminance, _maps_arrays, _plane_normals, _predict,
-    _prepare, _resize, lights_to_entries,
+    _Bar, _Photos, _Problem, _irradiance_parts, _maps_arrays, _plane_normals, _predict, _prepare, _resize,
+    lights_to_entries,
 )
-from matcap.refine.pixel_stage import (
-    _Mixing, _known_subsample, _neighbour_restarts, _outline_record, _plane_detail, _solve_maps,
-)
+from matcap.refine.pixel_stage import _Mixing, _neighbour_restarts, _outline_record, _plane_detail, _solve_maps
 from matcap.refine.settings import RefineSettings
 from scenes.materialmaps import MaterialMaps
 
@@ -133,18 +130,11 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
                   flat: dict | None = None) -> RefineResult:
     """The fit with lights the user knows (:class:`matcap.lightfiles.KnownLights`, one per photo).
 
-    Stages: (1) lights: the given directions (and point-light positions) are held; the per-photo intensities (or,
-    where the file gives relative intensities, one overall scale, their colours held) and the low orders of one
-    ambient shared by every photo are fitted, first by least squares, then jointly with a subsample's maps under
-    the Principled model (:func:`_fit_intensities`). On a flat sample whose given lights come without intensities
-    the subsample's mean normal is held to the camera axis (``lights.flat_mean_held``) and the ambient as given; on
-    one whose lights come with relative intensities the photos set their overall power, one factor on the
-    networks' base colour solved with them (``lights.flat_level_free``; under distant lights the ambient held as
-    given). On an object, distant lights whose intensities the file gives are taken as they are, at the
-    least-squares scale, with the file's ambient (a ``lights.json``'s ``sh``; else none) at that scale; the start
-    normals come from semi-calibrated Lambertian least squares (:func:`known_irradiance`); (2) the per-pixel solve
-    (:func:`_solve_maps`) from calibrated photometric-stereo normals, then the roughness stage
-    (:func:`_roughness_stage`); (3) outputs. With the lights known there is no
+    Stages: (1) lights (:func:`_known_light_stage`): the given directions held, the intensities and ambient fitted
+    or taken as given; (2) the per-pixel solve (:func:`_per_pixel_stage`) from calibrated photometric-stereo
+    normals, with the roughness stage; lamps found from a flat sample's falloff first go through rounds on the
+    light-fit copy, each followed by the lamps placed again with its maps (:func:`_place_lamps`) and the
+    intensities refitted to them (:func:`_refit_intensities`); (3) outputs. With the lights known there is no
     bas-relief family to choose from, so nothing is gated: the maps are always the fitted ones. ``flat``: what
     :func:`matcap.refine.flat.flat_lights` found (empty where the lights were given), recorded in fit.json as
     ``flat``.
@@ -163,83 +153,12 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
 
     # ---- 1. lights: intensities and ambient for the given directions
     t0 = time.perf_counter()
-    hw_l, (obs_l, mask_l, arr_l, w_l) = ph.light_copy(s.lights.side)
-    centre = _centre(torch, mask).numpy().astype(np.float64)
-    directions = np.asarray(known.directions, np.float64)
-    inv_distance = None
-    if known.positions is not None:  # point lights: direction and distance from the object's centre
-        rel = np.asarray(known.positions, np.float64) - centre
-        dist = np.linalg.norm(rel, axis=1)
-        directions, inv_distance = rel / np.maximum(dist, 1e-12)[:, None], 1.0 / np.maximum(dist, 1e-12)
-    given = None if known.intensities is None else np.asarray(known.intensities, np.float64)
-    if given is not None and inv_distance is not None:  # a point light's radiant intensity -> irradiance at the centre
-        given = given * inv_distance[:, None] ** 2
-    luma = np.asarray(LUMA, np.float64)
-    rows_l, cols_l = np.nonzero(mask_l)
-    # a flat sample's photometric normals start from (and, where unsolved, stay at) the plane's own normal: the
-    # robust solve weighs each observation by its residual at the start, and a network normal far off on a
-    # swatch's corner left it there
-    guess = arrays["normal"] if flat is None else _plane_normals(mask)
-    guess_l = arr_l["normal"] if flat is None else _plane_normals(mask_l)
-    irr = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, guess_l[rows_l, cols_l],
-                           None if given is None else given @ luma)
-    s_lum = directions * irr[:, None]
-    # a flat sample keeps the misfit Lambertian normals: the networks' are a poorer fallback on a swatch's relief
-    misfit = s.priors.lambertian_misfit if flat is None else None
-    start, photo_report = _photo_normals(obs, mask, guess, s_lum, positions=known.positions, max_misfit=misfit)
-    arrays = dict(arrays, normal=start)
-    if hw_l == (h, w):
-        arr_l, start_l = arrays, start
-    else:
-        start_l, _ = _photo_normals(obs_l, mask_l, guess_l, s_lum, photo_report, positions=known.positions,
-                                    max_misfit=misfit)
-        arr_l = dict(arr_l, normal=start_l)
-    idx = _known_subsample(mask_l, s, rng)
-    # no cast-shadow rule for a flat sample (a plane facing the camera shades itself only through its small
-    # relief) nor for found lamps (their errors would pass for shadow)
-    shadow = 0.0 if known.source == "estimated" or flat is not None else s.loss.shadow
-    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l, shadow=shadow)
-    lights = _init_lights(torch, prob, s, device, directions)
-    if inv_distance is not None:
-        lights = _to_near(torch, lights, torch.as_tensor(centre, dtype=torch.float32, device=device))
-        lights.inv_distance = torch.as_tensor(inv_distance, dtype=torch.float32, device=device)
-    given_log = None
-    # a flat sample's intensities in the photos' units: their power is held (the photos' scale to fit units alone).
-    # An object's photos hold light the model does not (interreflections, a room's light on its far side): there
-    # the least-squares scale takes its share
-    power_held = given is not None and known.intensity_units == "photos" and flat is not None
-    if given is not None:  # relative intensities: start from them at the least-squares overall scale
-        given_log = torch.as_tensor(np.log(np.maximum(given, 1e-12)), dtype=torch.float32, device=device)
-        offset = (torch.tensor(math.log(scale), dtype=torch.float32, device=device) if power_held
-                  else (lights.log_intensity - given_log).mean())
-        lights.log_intensity = given_log + offset
-        if known.ambient is not None and s.model.ambient != "none":  # the file's ambient, at the same scale
-            amb = np.asarray(known.ambient, np.float64)
-            amb = amb if s.model.ambient == "per-image" else amb.mean(0, keepdims=True)
-            lights.sh = torch.as_tensor(amb, dtype=torch.float32, device=device) * offset.exp()
-    # a flat sample's given lights without intensities: the sample's mean normal held (found lamps have their wide
-    # tilts taken out after the per-pixel solve instead, pixels.found_lamps_detail)
-    tilt_held = flat is not None and given is None and known.source != "estimated" and s.lights.flat_mean_held
-    # a flat sample whose lights' ratios are known: the photos set their overall power (each photo's own intensity
-    # fitted leaves too much freedom for that)
-    ratios_on_plane = flat is not None and given is not None and s.lights.flat_level_free
-    # nor can a plane's photos tell a constant ambient from each photo's own intensity, or, under distant lights
-    # (which light it evenly), from their overall power: there it stays as given
-    ambient_free = not (flat is not None and (given is None or inv_distance is None))
-    # distant lights whose intensities are given are taken as they are, but for that power on a flat sample; the
-    # others are fitted (with their power held, only what else is free: the level, the ambient)
-    fitted = ((inv_distance is not None or given is None or ratios_on_plane) and s.lights.known_iters > 0
-              and (not power_held or ratios_on_plane or (ambient_free and s.model.ambient != "none")))
-    level_free = fitted and ratios_on_plane
-    ambient = ("none" if s.model.ambient == "none" else "fitted" if fitted and ambient_free
-               else "given" if known.ambient is not None else "none")  # what fit.json says of it
-    light_iters, level = 0, 1.0
-    if fitted:
-        lights, level, light_iters = _fit_intensities(torch, prob, lights, s, bar, relative_to=given_log,
-                                                      power_held=power_held, mean_held=tilt_held,
-                                                      level_free=level_free, ambient_free=ambient_free)
-        if level_free:  # the per-pixel solve's prior: the networks' base colour at the level the photos set
-            arrays = dict(arrays, base=np.clip(arrays["base"] * level, 0.0, 1.0).astype(np.float32))
+    light_copy = ph.light_copy(s.lights.side)
+    hw_l, (obs_l, mask_l, _, w_l) = light_copy
+    stage = _known_light_stage(torch, ph, light_copy, known, flat, s, bar, rng, device)
+    lights, arrays, start, arr_l, start_l, shadow = (stage.lights, stage.arrays, stage.start, stage.arrays_copy,
+                                                     stage.start_copy, stage.shadow)
+    fitted, ambient_free, light_iters = stage.fitted, stage.ambient_free, stage.iters
     timings["lights_s"] = time.perf_counter() - t0
 
     # ---- 2. per pixel (lamps found from the falloff: first rounds of the per-pixel stage on the light-fit copy,
@@ -282,9 +201,10 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     timings["outputs_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     report = {
-        "lights": {**known.record(), "directions": "held", "ambient": ambient, "mean_normal_held": tilt_held,
-                   "base_level": round(level, 4) if level_free else None, "power_held": power_held,
-                   "solved_fraction": photo_report["solved_fraction"],
+        "lights": {**known.record(), "directions": "held", "ambient": stage.ambient,
+                   "mean_normal_held": stage.tilt_held,
+                   "base_level": round(stage.level, 4) if stage.level_free else None,
+                   "power_held": stage.power_held, "solved_fraction": stage.solved_fraction,
                    **({"found_lamps_moved_deg": moved} if found else {})},
         **({"flat": flat} if flat is not None else {}),
         "psnr_db": [round(p, 3) for p in out.psnr],
