@@ -2,8 +2,9 @@
 
 Pixels are grouped by base colour; a roughness grid scored per pixel (:mod:`matcap.refine.roughness`) lets the
 pixels that see a highlight decide their material's roughness (:func:`_roughness_stage`), the undecided ones keep
-their material's value, and each group votes for metal or dielectric (:func:`_metallic_vote`). Where the pixels'
-own fits scatter, the maps are pooled over a window (:func:`_pool_brdf`).
+their material's value, and each group votes for metal or dielectric (:func:`_metallic_vote`). With known lights
+each pixel then takes its window's median roughness and metallic where its own photos allow them
+(:func:`_pool_brdf`).
 """
 from __future__ import annotations
 

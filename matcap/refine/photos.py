@@ -1,8 +1,8 @@
 """What every stage of the fit works on: the photos in the fit's units, the pixels' problems and loss, progress.
 
 * :func:`_prepare` (the fit's first stage): checks, the photos scaled so that their mean over the mask is 0.5 (the
-  fit's units), each photo's clipping level, the light-variation weight (:func:`light_variation`), the half-size
-  copy of the light fit;
+  fit's units), each photo's clipping level, the light-variation weight (:func:`light_variation`); the light
+  stage's downsampled copy of the photos comes from :meth:`_Photos.light_copy`;
 * :class:`_Problem`: the observations (K, N, 3) of N pixels with their priors and bounds, and :func:`_loss`, the
   robust data term plus the priors that the light and pixel stages minimise;
 * the model's prediction (:func:`_shade`, :func:`_predict`), the ambient's share of the light
