@@ -469,8 +469,14 @@ def refine_synthetic_known(ctx: Ctx):
                    "--threads", "1", "--given-lights", "--given-only"])
     t = tables(run.stdout)[0]
     m = row_by(t, "mean, lights given")
+    parts = re.search(r"normals of the (\d+) scenes with a backdrop, scene means: objects ([\d.]+) -> ([\d.]+) deg, "
+                      r"backdrop ([\d.]+) -> ([\d.]+) deg", run.stdout)
+    apart = "" if parts is None else (
+        f"; the {parts[1]} scenes with a backdrop: objects {deg(float(parts[2]))} → {deg(float(parts[3]))}, "
+        f"backdrop {deg(float(parts[4]))} → {deg(float(parts[5]))}")
     return (f"{deg(num(m[2]))} → **{deg(num(m[3]))}** ({m[-1].strip()})",
-            f"roughness RMSE {num(m[6]):.3f} → {num(m[7]):.3f}, metallic {num(m[8]):.3f} → {num(m[9]):.3f}", [run])
+            f"roughness RMSE {num(m[6]):.3f} → {num(m[7]):.3f}, metallic {num(m[8]):.3f} → {num(m[9]):.3f}{apart}",
+            [run])
 
 
 def refine_sphere(ctx: Ctx):
