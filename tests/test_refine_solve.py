@@ -201,7 +201,7 @@ def test_the_pixel_solve_converges():
 
     def solve(settings, iters):
         out = PX._solve_pixels(torch, prob, px0, lights, settings, settings.loss.cauchy, iters,
-                              P._Bar(None, settings), "maps")
+                               P._Bar(None, settings), "maps")
         normal = np.zeros(m.shape + (3,), np.float32)
         normal[m] = out.normal().detach().numpy()
         with torch.no_grad():

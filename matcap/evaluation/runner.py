@@ -107,7 +107,7 @@ def _refine_and_record(images: list[np.ndarray], maps, seed: int, ctx: MethodCon
     directions (one unit vector per image, toward the light) in ``ctx.state["light_dirs"]``; return the maps."""
     try:
         from matcap.refine.fit import RefineSettings, refine
-    except ImportError:  # the fit lives in matcap/refine
+    except ImportError:  # matcap.refine.fit and its stage modules
         raise MatcapError("--refine needs the refinement stage (matcap.refine.fit), which this matcap lacks") from None
     result = refine(images, maps, RefineSettings(seed=seed, device=ctx.device))
     dirs = []
