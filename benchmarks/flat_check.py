@@ -48,7 +48,8 @@ either way, as a value of at least 1); roughness RMSE (no scale) and its % below
 ("-") for sets whose roughness is a constant (standard deviation under :data:`CONSTANT_STD`). A mean row
 averages each RMSE over the sets that have it and gives "% below const." of that mean RMSE against the mean of
 the best constants' RMSEs over the same sets. "light (deg)": the median angle between the lights the result's
-lights.json holds and the true ones, seen from the sample's centre; "fit": whether the fit of the photos was kept
+lights.json holds and the true ones, seen from the sample's centre; "lamps off (%)": where both are point lights,
+the median distance between a found lamp and the true one, in per cent of the true lamp's distance; "fit": whether the fit of the photos was kept
 ("fitted", with its light model) or the networks' maps were ("kept networks"); in a mean row, how many were fitted.
 """
 from __future__ import annotations
@@ -354,7 +355,18 @@ def fit_summary(result_dir: Path, true_lights: Path) -> dict:
         want = light_directions(json.loads(true_lights.read_text()))
         angles = [math.degrees(math.acos(float(np.clip(got[k] @ want[k], -1.0, 1.0)))) for k in want if k in got]
         out["light_deg"] = float(np.median(angles)) if angles else None
+        got_p, want_p = lamp_positions(json.loads((result_dir / "lights.json").read_text())), lamp_positions(
+            json.loads(true_lights.read_text()))
+        off = [100.0 * float(np.linalg.norm(got_p[k] - want_p[k]) / max(np.linalg.norm(want_p[k]), 1e-12))
+               for k in want_p if k in got_p]
+        out["lamp_off_pct"] = float(np.median(off)) if off else None
     return out
+
+
+def lamp_positions(doc: dict) -> dict[int, np.ndarray]:
+    """Each point light's position (the sample's centre is the origin), by image index, from a lights.json
+    document; distant lights have none."""
+    return {e["index"]: np.asarray(e["position"], np.float64) for e in doc["images"] if e["kind"] == "point"}
 
 
 def flat_baseline(truth: dict[str, np.ndarray]) -> dict:
@@ -469,12 +481,12 @@ def _fmt(v, spec: str) -> str:
 def table(rows: list[dict]) -> str:
     """Markdown table of the scored rows, then one mean row per condition and method."""
     head = ("| set | cond | method | normal (deg) | base RMSE* | base % below const. | base level | rough RMSE | "
-            "rough % below const. | light (deg) | fit | capture s |")
-    lines = [head, "|" + "---|" * 3 + "---:|" * 7 + "---|---:|"]
+            "rough % below const. | light (deg) | lamps off (%) | fit | capture s |")
+    lines = [head, "|" + "---|" * 3 + "---:|" * 8 + "---|---:|"]
 
     def line(r: dict) -> str:
         if r.get("status") and r["status"] != "ok":
-            return f"| {r['set']} | {r['condition']} | {r['method']} | {r['status']} | | | | | | | | |"
+            return f"| {r['set']} | {r['condition']} | {r['method']} | {r['status']} | | | | | | | | | |"
         s, fit = r.get("scores", {}), r.get("fit", {})
         how = "-" if not fit else ("kept networks" if fit.get("kept_network_maps") else
                                    f"fitted, {fit.get('light_model')}")
@@ -482,7 +494,8 @@ def table(rows: list[dict]) -> str:
                 f"{_fmt(s.get('base_rmse'), '.4f')} | {_fmt(s.get('base_below_pct'), '.0f')} | "
                 f"{_fmt(s.get('base_level'), '.2f')} | "
                 f"{_fmt(s.get('rough_rmse') if 'rough_below_pct' in s else None, '.4f')} | "
-                f"{_fmt(s.get('rough_below_pct'), '.0f')} | {_fmt(fit.get('light_deg'), '.1f')} | {how} | "
+                f"{_fmt(s.get('rough_below_pct'), '.0f')} | {_fmt(fit.get('light_deg'), '.1f')} | "
+                f"{_fmt(fit.get('lamp_off_pct'), '.1f')} | {how} | "
                 f"{_fmt(r.get('capture_s'), '.0f')} |")
 
     lines += [line(r) for r in rows]
@@ -519,8 +532,10 @@ def means(rows: list[dict]) -> list[dict]:
             agg["base_level"] = float(np.exp(np.mean(np.abs(np.log(levels)))))
         secs = [r["capture_s"] for r in group if r.get("capture_s") is not None]
         light = [r["fit"]["light_deg"] for r in group if (r.get("fit") or {}).get("light_deg") is not None]
+        off = [r["fit"]["lamp_off_pct"] for r in group if (r.get("fit") or {}).get("lamp_off_pct") is not None]
         kept = sum(bool((r.get("fit") or {}).get("kept_network_maps")) for r in group)
-        fit = {"light_deg": float(np.mean(light)) if light else None, "kept_network_maps": None,
+        fit = {"light_deg": float(np.mean(light)) if light else None,
+               "lamp_off_pct": float(np.mean(off)) if off else None, "kept_network_maps": None,
                "light_model": f"{len(group) - kept} of {len(group)}"} if any(r.get("fit") for r in group) else {}
         out.append({"set": f"mean of {len(group)}", "condition": cond, "method": method, "status": "ok",
                     "scores": agg, "fit": fit, "capture_s": float(np.mean(secs)) if secs else None, "mean": True})

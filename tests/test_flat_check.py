@@ -202,6 +202,26 @@ def test_means_and_table():
     assert "| a | near | default | 2.00 | 0.1000 | 50 | 2.00 |" in text
 
 
+def test_fit_summary_scores_found_lamps_by_angle_and_position(tmp_path):
+    """A result's lamps against the true ones: the median angle seen from the centre and the median distance
+    between them in per cent of the true lamp's distance (only where both are point lights)."""
+    def doc(positions):
+        return {"images": [{"index": i, "kind": "point", "position": list(p)} for i, p in enumerate(positions)]}
+
+    true = [(0.0, 0.0, 4.0), (3.0, 0.0, 4.0), (0.0, -2.0, 2.0)]
+    got = [(0.0, 0.0, 4.2), (3.0, 0.0, 4.0), (0.0, -2.0, 2.0 + 0.5)]  # 5 %, 0 %, 0.5 / 2.83 = 17.7 % off
+    (tmp_path / "result").mkdir()
+    (tmp_path / "result" / "capture.json").write_text(json.dumps({"refine": {"light_model": "point"}}))
+    (tmp_path / "result" / "lights.json").write_text(json.dumps(doc(got)))
+    (tmp_path / "true.json").write_text(json.dumps(doc(true)))
+    fit = F.fit_summary(tmp_path / "result", tmp_path / "true.json")
+    assert fit["lamp_off_pct"] == pytest.approx(5.0)
+    assert fit["light_deg"] == pytest.approx(0.0, abs=1e-6)  # lamp 0 is off along its own direction: no angle
+    (tmp_path / "result" / "lights.json").write_text(json.dumps(
+        {"images": [{"index": i, "kind": "directional", "direction": [0.0, 0.0, 1.0]} for i in range(3)]}))
+    assert F.fit_summary(tmp_path / "result", tmp_path / "true.json")["lamp_off_pct"] is None
+
+
 @pytest.mark.parametrize("argv", [["--size", "4"], ["--sets", "nope"], ["--conditions", "dim"],
                                   ["--methods", "magic"], ["--seed", "-1"], ["--photos", "1"]])
 def test_bad_arguments_exit_2_with_one_line(argv, capsys):
