@@ -205,7 +205,8 @@ def child_capture(out_dir: str, threads: int) -> dict:
     import torch
 
     torch.set_num_threads(threads)
-    from matcap import capture as cap_mod
+    import matcap.capture as cap_mod
+    import matcap.estimate as estimate_mod
     from matcap import cli
 
     phases: dict[str, float] = {}
@@ -222,8 +223,8 @@ def child_capture(out_dir: str, threads: int) -> dict:
 
         setattr(mod, name, timed)
 
-    wrap(cap_mod, "load_capture", "read photos")
-    wrap(cap_mod, "estimate", "networks")
+    wrap(cap_mod, "load_capture", "read photos")  # the name the capture calls (from matcap.photos)
+    wrap(estimate_mod, "estimate", "networks")
     import matcap.results as results_mod
     wrap(results_mod, "write_result", "write maps")
     argv = ["capture", str(ROOT / "examples" / "bunny"), "--linear", "--out", out_dir, "--relight",

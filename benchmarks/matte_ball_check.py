@@ -8,7 +8,7 @@
 A Lambertian sphere (:func:`matcap.refine.synthetic.matte_ball`: a DiLiGenT-ball-like capture, 16 distant lamps
 within 45 degrees of the view axis, lamps of unequal power (``--unequal``), a slightly varying grey-brown albedo, a
 weak sky-like ambient, photon and read noise, 16-bit linear PNGs, attached shadows, no cast shadows) is written to
-a capture folder and run through the bundled networks (``matcap.capture.estimate``, the "before") and :func:`matcap.refine.refine` (the "after"). Prints a
+a capture folder and run through the bundled networks (``matcap.estimate.estimate``, the "before") and :func:`matcap.refine.refine` (the "after"). Prints a
 Markdown table: mean normal error against the analytic sphere (``analytic_sphere`` of the mask), light-direction
 error against the true lamps (median / max degrees), re-render PSNR, the check, and the fit given the true lamps
 (``lights.txt``: the known-lights fit).
@@ -43,8 +43,9 @@ def run_ball(folder: Path, models, settings, true_dirs=None, cache: Path | None 
              max_side: int | None = None) -> dict:
     """Networks then the fit on the capture in ``folder`` (photos shrunk to ``max_side``), lights estimated and,
     where ``folder`` has a ``lights.txt``, given: {network, fit, fit_known, light_median, light_max, psnr, report}."""
-    from matcap.capture import estimate, load_capture
+    from matcap.estimate import estimate
     from matcap.evaluation.metrics import analytic_sphere
+    from matcap.photos import load_capture
     from matcap.refine import refine
     from scenes.materialmaps import MaterialMaps
 
@@ -113,7 +114,7 @@ def main(argv=None) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    from matcap.capture import load_networks
+    from matcap.estimate import load_networks
 
     models = load_networks(None)
     settings = _settings(args.set)

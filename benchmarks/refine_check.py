@@ -40,7 +40,7 @@ SHARED = REPO.parent / "shared" / "data" / "captures"
 def _models(args):
     """The networks of ``--weights`` (as ``matcap capture --weights``: a candidate scored before it is installed),
     else the installed defaults."""
-    from matcap.capture import load_networks
+    from matcap.estimate import load_networks
 
     return load_networks(args.weights)
 
@@ -104,8 +104,9 @@ def _angle(a, b) -> float:
 
 
 def sphere(args) -> None:
-    from matcap.capture import estimate, load_capture
+    from matcap.estimate import estimate
     from matcap.evaluation.metrics import analytic_sphere
+    from matcap.photos import load_capture
     from matcap.refine import refine
 
     cap = load_capture(args.capture or SHARED / "toyps_sphere", linear=True)
@@ -129,9 +130,10 @@ def sphere(args) -> None:
 
 
 def uw(args) -> None:
-    from matcap.capture import downscale_arrays, estimate, upscale_normals
+    from matcap.estimate import estimate
     from matcap.evaluation.baselines import least_squares_ps
     from matcap.evaluation.datasets import load_uw_object
+    from matcap.photos import downscale_arrays, upscale_normals
     from matcap.refine import refine
     from matcap.refine.light_stage import fit_light_only
 
@@ -158,7 +160,7 @@ def uw(args) -> None:
         before = score(maps.normal)
         known = None
         if args.lights:
-            from matcap.capture import read_lights_for
+            from matcap.photos import read_lights_for
 
             folder = SHARED / f"uw_{name}"
             known = read_lights_for(folder / "lights.txt" if args.lights == "txt" else args.lights, folder)
@@ -180,7 +182,7 @@ def uw(args) -> None:
 def synthetic(args) -> None:
     """Normal MAE and BRDF RMSE before -> after the fit on a synthetic split; ``--given-lights``: scenes lit by
     one directional light per photo get their true directions and relative intensities (the known-lights fit)."""
-    from matcap.capture import estimate
+    from matcap.estimate import estimate
     from matcap.evaluation.datasets import load_synthetic_scene
     from matcap.refine import refine
     from matcap.results import read_result
@@ -255,7 +257,7 @@ def samples(args) -> None:
     normals +z) and a plane with smooth random bumps, rendered under 12 directional lights in a 45-degree cone."""
     from scipy import ndimage
 
-    from matcap.capture import estimate
+    from matcap.estimate import estimate
     from matcap.evaluation.metrics import angular_error_map
     from matcap.formats import load_maps
     from matcap.refine import refine
@@ -297,7 +299,7 @@ def dome(args) -> None:
     matte (0.9) (``--roughness``), rendered with Mitsuba under 16 known directional lights in a 45-degree cone
     plus a faint ambient (``--dome-light``: or point lights, an environment map, both); the fit as the check
     decides, and trusted whatever the check's residual / inliers say (``checks.residual=inf``, ``checks.inliers=0``)."""
-    from matcap.capture import estimate
+    from matcap.estimate import estimate
     from matcap.formats import load_maps
     from matcap.refine import refine
     from matcap.refine import synthetic as S
@@ -343,7 +345,7 @@ def detail(args) -> None:
     (:func:`matcap.evaluation.metrics.detail_scores`); the grid: the share of that detail at periods up to 1.1 x
     side / 128 px (:func:`matcap.evaluation.metrics.fine_energy_share`). ``--crops PNG``: photo / normals /
     n.l shading under a grazing light, network / fit / truth, one row per roughness."""
-    from matcap.capture import estimate
+    from matcap.estimate import estimate
     from matcap.evaluation.metrics import detail_scores, fine_energy_share
     from matcap.formats import load_maps
     from matcap.refine import refine

@@ -20,8 +20,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def main(argv: list[str] | None = None) -> int:
-    from matcap.capture import estimate, load_capture, load_networks
+    from matcap.estimate import estimate, load_networks
     from matcap.evaluation.metrics import analytic_sphere, angular_error_map
+    from matcap.photos import load_capture
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     repo = Path(__file__).resolve().parents[1]

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from matcap import imageio
-from matcap.capture import load_capture
+from matcap.photos import load_capture
 from matcap.results import read_result
 
 

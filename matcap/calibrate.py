@@ -722,12 +722,12 @@ def read_ball_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarra
 
 def calibrate_folder(photos: str | os.PathLike, out: str | os.PathLike, ball_mask: str | os.PathLike | None = None,
                      focal_px: float | None = None, linear: bool = False, overwrite: bool = False) -> Calibration:
-    """``matcap calibrate``: read the photos of a folder (:func:`matcap.capture.load_capture`; 8-bit decoded from
+    """``matcap calibrate``: read the photos of a folder (:func:`matcap.photos.load_capture`; 8-bit decoded from
     sRGB unless ``linear``; a ``mask.*`` in the folder is not used: it would be the object's), calibrate, and write
     ``out`` (lights.json) and ``calibration.png`` beside it. ``ball_mask``: an image file, > 0 on the ball's disc.
     Refuses (one line) an existing ``out`` or ``calibration.png`` unless ``overwrite``, and an ``out`` inside the
     photos folder (the picture would be read as a photo next time)."""
-    from matcap.capture import load_capture
+    from matcap.photos import load_capture
 
     photos, out = Path(photos), Path(out)
     if out.suffix.lower() != ".json":

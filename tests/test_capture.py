@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from matcap import imageio
-from matcap.capture import _from_square, _plan, _to_square, estimate, load_capture
+from matcap.estimate import _from_square, _plan, _to_square, estimate
+from matcap.photos import load_capture
 from conftest import sphere_photos
 
 
@@ -136,12 +137,12 @@ def test_capture_is_deterministic_for_a_seed_and_scalable_for_large_inputs(tiny_
 
 
 def test_no_default_model_message(monkeypatch, tmp_path):
-    import matcap.capture as cap
+    import matcap.estimate as est
 
-    monkeypatch.setattr(cap, "DEFAULT_WEIGHTS", {"normal": tmp_path / "none.safetensors",
+    monkeypatch.setattr(est, "DEFAULT_WEIGHTS", {"normal": tmp_path / "none.safetensors",
                                                  "brdf": tmp_path / "none2.safetensors"})
-    with pytest.raises(cap.MatcapError, match="no trained default model is installed.*matcap weights import"):
-        cap.resolve_weights(None)
+    with pytest.raises(est.MatcapError, match="no trained default model is installed.*matcap weights import"):
+        est.resolve_weights(None)
 
 
 def test_capture_relight_and_export_in_one_go(tiny_weights, tmp_path):
@@ -167,7 +168,7 @@ def test_capture_relight_and_export_in_one_go(tiny_weights, tmp_path):
 
 def test_views_average_mirrored_predictions_and_are_recorded(tiny_weights, tmp_path):
     """--views 2 differs from one view, keeps unit normals and BRDF maps in range, and lands in capture.json."""
-    from matcap.capture import estimate
+    from matcap.estimate import estimate
 
     images = [np.random.default_rng(i).uniform(0.05, 1, (40, 56, 3)).astype(np.float32) for i in range(3)]
     one = estimate(images, None, weights=[tiny_weights], seed=1)
@@ -258,7 +259,7 @@ def test_max_side_shrinks_photos_and_mask_first(tiny_weights, tmp_path):
     info = json.loads((out / "capture.json").read_text())
     assert info["image_size_wh"] == [28, 20] and info["photo_size_wh"] == [56, 40]
     # area averaging in linear light: the shrunk photo's mean equals the original's
-    from matcap.capture import downscale, load_capture
+    from matcap.photos import downscale, load_capture
 
     cap = load_capture(folder)
     small = downscale(cap, 28)
@@ -292,8 +293,8 @@ def test_phone_jpegs_are_turned_upright_by_their_exif_orientation(tmp_path):
 
 def test_an_odd_first_image_is_the_one_blamed(tmp_path):
     from matcap import imageio
-    from matcap.capture import load_capture
     from matcap.errors import MatcapError
+    from matcap.photos import load_capture
 
     imageio.write_png(tmp_path / "a.png", np.full((12, 20, 3), 0.5, np.float32), bits=8)  # the odd one
     for name in ("b.png", "c.png", "d.png"):

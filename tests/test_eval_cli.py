@@ -106,24 +106,24 @@ def test_reference_mode_without_ground_truth(uw_like, tmp_path, capsys):
     assert row["mae"] < 5.0  # two baselines on a (shadowed, 8-bit) Lambertian sphere roughly agree
 
 
-def _fake_capture(monkeypatch, record) -> types.ModuleType:
-    """Install a stand-in ``matcap.capture`` whose ``estimate`` calls ``record(images, mask, weights, seed, views)``
+def _fake_estimate(monkeypatch, record) -> types.ModuleType:
+    """Install a stand-in ``matcap.estimate`` whose ``estimate`` calls ``record(images, mask, weights, seed, views)``
     and returns flat normals (the evaluation runner imports the real one lazily)."""
 
     def estimate(images, mask, *, weights=None, max_images=None, seed=0, device="cpu", views=1, progress=False):
         record(images, mask, weights, seed, views)
         return types.SimpleNamespace(normal=np.where(mask[:, :, None], [0.0, 0.0, 1.0], 0.0))
 
-    fake = types.ModuleType("matcap.capture")
+    fake = types.ModuleType("matcap.estimate")
     fake.estimate = estimate
-    monkeypatch.setitem(sys.modules, "matcap.capture", fake)
-    monkeypatch.setattr(matcap, "capture", fake, raising=False)
+    monkeypatch.setitem(sys.modules, "matcap.estimate", fake)
+    monkeypatch.setattr(matcap, "estimate", fake, raising=False)
     return fake
 
 
 def test_learned_method_gets_images_lazily(dataset, tmp_path, monkeypatch, capsys):
     calls = []
-    _fake_capture(monkeypatch, lambda images, mask, weights, seed, views: calls.append((len(images), seed, weights)))
+    _fake_estimate(monkeypatch, lambda images, mask, weights, seed, views: calls.append((len(images), seed, weights)))
     js = tmp_path / "r.json"
     rc = main(["eval", str(dataset), "--method", "sdm-unips", "--objects", "planePNG", "--max-images", "4",
                "--trials", "2", "--weights", "w.safetensors", "--json", str(js), "--quiet"])
@@ -135,13 +135,9 @@ def test_learned_method_gets_images_lazily(dataset, tmp_path, monkeypatch, capsy
 
 
 def test_max_side_feeds_the_network_small_images_and_scores_at_full_size(dataset, tmp_path, monkeypatch):
-    from matcap import capture as real
-
     shapes = []
-    fake = _fake_capture(monkeypatch, lambda images, mask, weights, seed, views: shapes.append(
+    _fake_estimate(monkeypatch, lambda images, mask, weights, seed, views: shapes.append(
         (images[0].shape, mask.shape, views)))
-    fake.downscale_arrays, fake.upscale_normals = real.downscale_arrays, real.upscale_normals
-    fake.check_max_side = real.check_max_side
     js = tmp_path / "r.json"
     rc = main(["eval", str(dataset), "--method", "sdm-unips", "--objects", "spherePNG", "--max-side", "16",
                "--views", "2", "--json", str(js), "--quiet"])
@@ -157,7 +153,7 @@ def test_max_side_feeds_the_network_small_images_and_scores_at_full_size(dataset
 
 
 def test_upscale_normals_keeps_unit_length_and_the_mask():
-    from matcap.capture import upscale_normals
+    from matcap.photos import upscale_normals
 
     small = np.zeros((4, 4, 3), np.float32)
     small[1:3, 1:3] = np.float32([0.6, 0.0, 0.8])
@@ -199,7 +195,7 @@ def test_linear_gives_the_network_8bit_uw_values_as_stored(tmp_path, monkeypatch
     imageio.write_png(folder / "box.mask.png", np.ones((8, 8), np.float32), bits=8)
     (folder / "lights.txt").write_text("3\n0 0 1\n0.5 0 0.866\n0 0.5 0.866\n")
     seen = []
-    _fake_capture(monkeypatch, lambda images, mask, weights, seed, views: seen.append(float(images[0][0, 0, 0])))
+    _fake_estimate(monkeypatch, lambda images, mask, weights, seed, views: seen.append(float(images[0][0, 0, 0])))
     js = tmp_path / "r.json"
     for extra in ([], ["--linear"]):
         assert main(["eval", str(tmp_path / "uw"), "--method", "sdm-unips", "--reference", "least-squares", "--json",

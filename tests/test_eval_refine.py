@@ -50,10 +50,10 @@ def stand_ins(monkeypatch, uw_like):
         refined = types.SimpleNamespace(normal=np.where(maps.mask[:, :, None], [0.0, 0.0, 1.0], 0.0))
         return types.SimpleNamespace(maps=refined, lights=entries)
 
-    fake_capture = types.ModuleType("matcap.capture")
-    fake_capture.estimate = estimate
-    monkeypatch.setitem(sys.modules, "matcap.capture", fake_capture)
-    monkeypatch.setattr(matcap, "capture", fake_capture, raising=False)
+    fake_estimate = types.ModuleType("matcap.estimate")
+    fake_estimate.estimate = estimate
+    monkeypatch.setitem(sys.modules, "matcap.estimate", fake_estimate)
+    monkeypatch.setattr(matcap, "estimate", fake_estimate, raising=False)
     fake_fit = types.ModuleType("matcap.refine.fit")
     fake_fit.refine = refine
     fake_fit.RefineSettings = lambda seed=0, device="cpu": types.SimpleNamespace(seed=seed, device=device)

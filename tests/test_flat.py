@@ -449,23 +449,23 @@ def test_flat_sample_under_distant_lamps_keeps_the_networks_maps_with_the_planes
 def test_large_flat_sample_meets_the_networks_as_a_copy(monkeypatch):
     """Photos longer than FLAT_NETWORK_SIDE: a flat sample's networks see a copy of that size and their maps come
     back upsampled to the photos' size (unit normals on the mask); an object's networks see every pixel."""
-    from matcap import capture
+    import matcap.estimate as est
     from matcap.evaluation.toy import cone_lights, sphere_normals
 
-    monkeypatch.setattr(capture, "FLAT_NETWORK_SIDE", 32)
+    monkeypatch.setattr(est, "FLAT_NETWORK_SIDE", 32)
     n, albedo = _swatch(64)
     photos = _lambertian_photos(n, albedo, _lamps(8, (1.0, 2.0)))
     for flat in (True, None):
-        maps = capture.network_maps(photos, None, flat, True, seed=0)
+        maps = est.network_maps(photos, None, flat, True, seed=0)
         assert maps.shape == (64, 64) and maps.meta["network_size_wh"] == [32, 32], flat
         assert maps.mask.all() and np.allclose(np.linalg.norm(maps.normal, axis=-1), 1.0, atol=1e-5)
         assert maps.base_color.shape == (64, 64, 3) and maps.roughness.shape == (64, 64)
-    assert capture.network_maps(photos, None, True, False, seed=0).meta["network_size_wh"] == [64, 64]  # no fit
+    assert est.network_maps(photos, None, True, False, seed=0).meta["network_size_wh"] == [64, 64]  # no fit
     sphere, mask = sphere_normals(64)
     lights = cone_lights(8, 45.0, seed=0)
     balls = [np.repeat((np.clip(sphere @ d, 0.0, None) * mask)[..., None], 3, -1).astype(np.float32) * 0.6
              for d in lights]
-    assert capture.network_maps(balls, mask, None, True, seed=0).meta["network_size_wh"] == [64, 64]  # an object
+    assert est.network_maps(balls, mask, None, True, seed=0).meta["network_size_wh"] == [64, 64]  # an object
 
 
 def test_an_8bit_flat_capture_finds_its_lamps_once_per_decoding(tmp_path, monkeypatch, capsys):

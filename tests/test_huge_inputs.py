@@ -16,8 +16,8 @@ import pytest
 
 from conftest import sphere_photos
 from matcap import imageio
-from matcap.capture import check_memory, load_capture, memory_needed
 from matcap.errors import MatcapError
+from matcap.photos import check_memory, load_capture, memory_needed
 
 
 def fake_big_png(path: Path, w: int, h: int) -> Path:
@@ -107,7 +107,7 @@ def test_max_side_and_max_images_bound_memory_while_reading(tmp_path, monkeypatc
     """Photos too large for the (simulated) memory at full size fit with --max-side: each is shrunk as it is read,
     and --max-images photos that are not used are never decoded."""
     folder = sphere_photos(tmp_path / "photos", h=600, w=800, n=6)
-    from matcap.capture import MEMORY_FRACTION
+    from matcap.photos import MEMORY_FRACTION
 
     limit_gb = str((memory_needed(6, (600, 800)) - 5e7) / MEMORY_FRACTION / 1e9)  # full size just does not fit
     monkeypatch.setenv("MATCAP_MEMORY_GB", limit_gb)
@@ -121,7 +121,7 @@ def test_max_side_and_max_images_bound_memory_while_reading(tmp_path, monkeypatc
     assert cap.photo_size_wh == (800, 600) and len(cap.files) == 3
     assert sorted(n for n in decoded if n != "mask.png") == sorted(cap.files)
     # shrunk while reading == shrunk after reading (the previous behaviour)
-    from matcap.capture import downscale_arrays
+    from matcap.photos import downscale_arrays
 
     monkeypatch.delenv("MATCAP_MEMORY_GB")
     full = load_capture(folder)

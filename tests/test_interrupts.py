@@ -48,7 +48,7 @@ sys.exit(main(argv))
 
 # each: code run in the child before the command, defining where it stops
 STOP_IN_NETWORKS = """
-import matcap.capture as m
+import matcap.estimate as m
 _orig = m.estimate
 def estimate(*a, **k):
     stop_here()

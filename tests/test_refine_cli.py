@@ -17,7 +17,8 @@ from tests.test_capture import assert_one_line_error, run_cli
 # changed torch's thread count, and a different thread count changes the float rounding of the network.
 _NETWORK_MAPS = (
     "import sys, numpy as np\n"
-    "from matcap.capture import estimate, load_capture\n"
+    "from matcap.estimate import estimate\n"
+    "from matcap.photos import load_capture\n"
     "cap = load_capture(sys.argv[1])\n"
     "maps = estimate(cap.images, cap.mask, weights=[sys.argv[2]], seed=0)\n"
     "np.save(sys.argv[3], np.where(maps.mask[..., None], maps.normal, 0))\n"

@@ -63,8 +63,9 @@ def test_the_fit_is_not_worse_than_the_networks_on_a_rendered_matte_ball(tmp_pat
     networks 3.60, fit 3.30 degrees; 4.67 before the equal-irradiance gate)."""
     import torch
 
-    from matcap.capture import estimate, load_capture, load_networks
+    from matcap.estimate import estimate, load_networks
     from matcap.evaluation.metrics import analytic_sphere, angular_error_map
+    from matcap.photos import load_capture
     from matcap.refine import RefineSettings, refine
     from matcap.refine.synthetic import matte_ball
 

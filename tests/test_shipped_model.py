@@ -11,8 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from matcap.capture import estimate, load_capture
+from matcap.estimate import estimate
 from matcap.evaluation.metrics import analytic_sphere, angular_error_map
+from matcap.photos import load_capture
 from tests.conftest import REPO, shared_path
 
 NORMAL_WEIGHTS = REPO / "networks" / "weights" / "normal_small.safetensors"

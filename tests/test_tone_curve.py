@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from matcap import imageio
-from matcap.capture import decide_colour, load_capture
+from matcap.capture import decide_colour
 from matcap.errors import MatcapError
+from matcap.photos import load_capture
 from conftest import sphere_geometry, sphere_photos
 from tests.test_capture import assert_one_line_error, run_cli
 

@@ -26,7 +26,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from matcap.errors import MatcapError
-    from matcap.capture import DEFAULT_WEIGHTS
+    from matcap.estimate import DEFAULT_WEIGHTS
     from matcap.models import WEIGHTS_DIR, install, installed_models
 
     if args.action == "install":

@@ -33,9 +33,10 @@ def register(sub) -> None:
 def run(args) -> int:
     from pathlib import Path
 
-    from matcap.capture import downscale_arrays, load_capture, read_lights_for, refine_maps
+    from matcap.capture import refine_maps
     from matcap.commands.capture import fit_settings, print_fit_notes
     from matcap.errors import MatcapError
+    from matcap.photos import downscale_arrays, load_capture, read_lights_for
     from matcap.results import check_not_replacing_inputs, check_output_dir, read_result, write_result
     from networks.inference import check_device
 

@@ -41,7 +41,7 @@ class MethodContext:
 
     weights: list[str] | None = None
     device: str = "cpu"
-    views: int = 1  # test-time augmentation of the network (capture.estimate(views=...))
+    views: int = 1  # test-time augmentation of the network (matcap.estimate.estimate(views=...))
     max_side: int | None = None  # network input shrunk to this longer side, normals scaled back (capture --max-side)
     linear: bool = False  # 8-bit images go to the network as stored (capture --linear), not sRGB-decoded
     state: dict[str, Any] | None = None  # lazily loaded things (networks), kept across objects
@@ -70,21 +70,22 @@ def _run_robust(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext) -
 
 def _network_maps(obj: PSObject, idx: np.ndarray, seed: int, ctx: MethodContext):
     """The images the network sees (after --linear / --max-side) and its maps for them."""
-    from matcap import capture  # lazy: torch and the networks load only when this method is used
+    from matcap import estimate  # lazy: torch and the networks load only when this method is used
+    from matcap.photos import downscale_arrays
 
     state = ctx.state if ctx.state is not None else {}
     kwargs: dict[str, Any] = {}
-    if hasattr(capture, "load_networks"):
+    if hasattr(estimate, "load_networks"):
         if "models" not in state:
             t0 = time.perf_counter()
-            state["models"] = capture.load_networks(ctx.weights, ctx.device)
+            state["models"] = estimate.load_networks(ctx.weights, ctx.device)
             state["load_s"] = time.perf_counter() - t0
         kwargs["models"] = state["models"]
     images, mask = obj.network_images(idx, decode_srgb=not ctx.linear), obj.mask
     if ctx.max_side is not None:
-        images, mask = capture.downscale_arrays(images, mask, ctx.max_side)
-    maps = capture.estimate(images, mask, weights=ctx.weights, max_images=None, seed=seed,
-                            device=ctx.device, views=ctx.views, progress=False, **kwargs)
+        images, mask = downscale_arrays(images, mask, ctx.max_side)
+    maps = estimate.estimate(images, mask, weights=ctx.weights, max_images=None, seed=seed,
+                             device=ctx.device, views=ctx.views, progress=False, **kwargs)
     return images, maps
 
 
@@ -92,9 +93,9 @@ def _full_size_normals(obj: PSObject, maps) -> np.ndarray:
     """The maps' normals, scored at the object's own size like every other method."""
     normal = np.asarray(maps.normal, dtype=np.float32)
     if normal.shape[:2] != obj.mask.shape:
-        from matcap import capture
+        from matcap.photos import upscale_normals
 
-        normal = capture.upscale_normals(normal, obj.mask.shape, obj.mask)
+        normal = upscale_normals(normal, obj.mask.shape, obj.mask)
     return normal
 
 
@@ -141,7 +142,7 @@ METHODS: dict[str, Method] = {
         Method("least-squares-robust", True, 3,
                f"least squares without the darkest {baselines.DEFAULT_DARK_FRAC:.0%} and brightest "
                f"{baselines.DEFAULT_BRIGHT_FRAC:.0%} observations per pixel", _run_robust),
-        Method("sdm-unips", False, 2, "SDM-UniPS network via matcap.capture.estimate (lights unknown to it)",
+        Method("sdm-unips", False, 2, "SDM-UniPS network via matcap.estimate.estimate (lights unknown to it)",
                _run_sdm_unips),
     )
 }
@@ -314,7 +315,7 @@ def evaluate(dataset: str | Path, method: str = "least-squares", reference: str 
             raise MatcapError(f"unknown object(s) {', '.join(missing)}; found: {', '.join(sorted(names))}")
         sources = [s for s in sources if s.name in set(objects)]
     if max_side is not None:
-        from matcap.capture import check_max_side  # no torch: matcap.capture loads the networks lazily
+        from matcap.photos import check_max_side  # no torch
 
         check_max_side(max_side)
     network = ("sdm-unips", REFINED.name)

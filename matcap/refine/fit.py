@@ -9,8 +9,9 @@ Cauchy loss (shadows, interreflections and highlights the model cannot explain a
 light-variation weight (:func:`light_variation`), and the prior pulls normals, base colour, roughness and metallic
 toward the network's values (this is what stops the drift into the generalized bas-relief family).
 
-The fit's stages (the photos' decoding and the networks run before, in :mod:`matcap.capture`), one module each;
-this module runs them (:func:`refine`: :func:`_refine_known` or :func:`_refine_estimated`) and writes the outputs:
+The fit's stages (the photos' decoding, :mod:`matcap.photos`, and the networks, :mod:`matcap.estimate`, run
+before; :mod:`matcap.capture` runs them all), one module each; this module runs them (:func:`refine`:
+:func:`_refine_known` or :func:`_refine_estimated`) and writes the outputs:
   1. photos (:mod:`matcap.refine.photos`): :func:`_prepare` (checks, fit units, clipping levels, light variation);
   2. lights (:mod:`matcap.refine.light_stage`), on a downsampled copy of the photos: known (a light file or a mirror
      ball; the directions held) or estimated (the Lambertian factorization of :mod:`matcap.refine.linear` and its
