@@ -19,7 +19,9 @@ import numpy as np
 from matcap import imageio
 from matcap.errors import MatcapError
 from matcap.estimate import network_maps
-from matcap.photos import Capture, _shrink, check_max_side, load_capture, photo_names, pick_images, read_lights_for
+from matcap.photos import (Capture, check_max_side, load_capture, photo_names, pick_images, read_lights_for,
+                           shrink_image)
+from matcap.refine.flat import flat_choice
 from scenes.materialmaps import MaterialMaps, check_constant
 
 if TYPE_CHECKING:
@@ -225,25 +227,6 @@ def capture(
     return maps, Path(out)
 
 
-#: A capture is taken as a flat sample without being told only where it has at least this many photos.
-FLAT_MIN_PHOTOS = 4
-
-
-def flat_choice(flat: bool | None, maps: MaterialMaps) -> tuple[bool, dict[str, Any]]:
-    """(whether the fit takes the capture as a flat sample, capture.json ``flat``): ``flat`` as given (True / False:
-    the user said it), or, for None, :func:`matcap.refine.flat.check_flat` on the networks' normals (and at least
-    ``FLAT_MIN_PHOTOS`` photos)."""
-    from matcap.refine.flat import check_flat
-
-    found = check_flat(maps.normal, maps.mask)
-    detected = found.flat and len(maps.meta.get("images_used", ())) >= FLAT_MIN_PHOTOS
-    record = {"flat": bool(detected if flat is None else flat), "chosen_by": "detection" if flat is None else "flag",
-              "coverage": found.coverage, "tilt_mean_deg": found.tilt_mean_deg, "tilt_p90_deg": found.tilt_p90_deg}
-    if flat is None:
-        record["why"] = found.describe()
-    return record["flat"], record
-
-
 def without_region(cap: Capture, region: np.ndarray | None) -> Capture:
     """``cap`` with the pixels ``region`` (H, W) bool kept out of its mask (a mirror ball in the frame)."""
     if region is None:
@@ -274,7 +257,7 @@ def ball_lights(folder, ball: str | os.PathLike, linear: bool | None, contrast: 
         full = cap.photo_size_wh[::-1]
         ball_mask = read_ball_mask(ball, full)
         if tuple(full) != cap.images[0].shape[:2]:
-            ball_mask = _shrink(ball_mask.astype(np.float32), cap.images[0].shape[1::-1]) > 0.5
+            ball_mask = shrink_image(ball_mask.astype(np.float32), cap.images[0].shape[1::-1]) > 0.5
     cal = calibrate(cap.images, ball_mask=ball_mask, names=cap.files)
     linear_photos = "8-bit sRGB" not in cap.colour
     known = KnownLights(cal.directions, cal.intensities if linear_photos else None, "ball",

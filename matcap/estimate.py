@@ -284,7 +284,7 @@ def network_maps(images: Sequence[np.ndarray], mask: np.ndarray | None, flat: bo
     renormalised): their detail is the fit's to find, and the networks' time grows with the pixel count.
     ``meta["network_size_wh"]`` records the size they saw.
     """
-    from matcap.capture import flat_choice  # the capture's rule for taking photos as a flat sample
+    from matcap.refine.flat import flat_choice  # the capture's rule for taking photos as a flat sample
 
     h, w = images[0].shape[:2]
     if refine and flat is not False and max(h, w) > FLAT_NETWORK_SIDE:

@@ -132,7 +132,8 @@ def _fit_side(size_hw: tuple[int, int], max_side: int | None) -> tuple[int, int]
     return max(1, round(h * s)), max(1, round(w * s))
 
 
-def _shrink(image: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
+def shrink_image(image: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
+    """``image`` (H, W) or (H, W, C) area-averaged to ``size_wh`` (W, H)."""
     import cv2
 
     return cv2.resize(image, size_wh, interpolation=cv2.INTER_AREA)
@@ -224,13 +225,13 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
         del stored
         work_hw = _fit_side(arr.shape[:2], max_side)
         if work_hw != arr.shape[:2]:
-            arr = _shrink(arr, (work_hw[1], work_hw[0]))
+            arr = shrink_image(arr, (work_hw[1], work_hw[0]))
         images.append(arr)
     size = imageio.check_same_size(sizes)
     mask_path = Path(mask) if mask is not None else found_mask
     mask_arr = read_mask(mask_path, size) if mask_path is not None else None
     if mask_arr is not None and max_side is not None and images[0].shape[:2] != size:
-        mask_arr = _shrink(mask_arr.astype(np.float32), images[0].shape[1::-1]) > 0.5
+        mask_arr = shrink_image(mask_arr.astype(np.float32), images[0].shape[1::-1]) > 0.5
         if not mask_arr.any():
             raise MatcapError(f"the mask vanishes at --max-side {max_side}; use a larger value")
     if mask_arr is not None and not mask_arr.any():

@@ -25,6 +25,7 @@ from matcap.errors import MatcapError
 
 if TYPE_CHECKING:
     from matcap.lightfiles import KnownLights
+    from scenes.materialmaps import MaterialMaps
 
 
 @dataclass
@@ -68,6 +69,23 @@ def check_flat(normal: np.ndarray, mask: np.ndarray) -> FlatCheck:
     p90 = float(np.percentile(tilt, 90))
     flat = coverage >= FLAT_COVERAGE and mean_tilt <= FLAT_MEAN_TILT and p90 <= FLAT_P90_TILT
     return FlatCheck(flat, round(coverage, 4), round(mean_tilt, 3), round(p90, 3))
+
+
+#: A capture is taken as a flat sample without being told only where it has at least this many photos.
+FLAT_MIN_PHOTOS = 4
+
+
+def flat_choice(flat: bool | None, maps: MaterialMaps) -> tuple[bool, dict]:
+    """(whether the fit takes the capture as a flat sample, capture.json ``flat``): ``flat`` as given (True / False:
+    the user said it), or, for None, :func:`check_flat` on the networks' normals (and at least
+    ``FLAT_MIN_PHOTOS`` photos)."""
+    found = check_flat(maps.normal, maps.mask)
+    detected = found.flat and len(maps.meta.get("images_used", ())) >= FLAT_MIN_PHOTOS
+    record = {"flat": bool(detected if flat is None else flat), "chosen_by": "detection" if flat is None else "flag",
+              "coverage": found.coverage, "tilt_mean_deg": found.tilt_mean_deg, "tilt_p90_deg": found.tilt_p90_deg}
+    if flat is None:
+        record["why"] = found.describe()
+    return record["flat"], record
 
 
 def check_plane_mask(mask: np.ndarray) -> None:
