@@ -90,9 +90,12 @@ def steps(threads: int, repeats: int = 5) -> dict:
     if threads:
         torch.set_num_threads(threads)
     from matcap.refine import RefineSettings
-    try:  # the fit's stages, one module each
-        from matcap.refine import light_stage as L
+    try:  # the fit's stages, one module each (the lights' shared fits in light_fit)
         from matcap.refine import photos as P
+        try:
+            from matcap.refine import light_fit as L
+        except ImportError:  # an --old revision whose lights stage is one module
+            from matcap.refine import light_stage as L
     except ImportError:  # an --old revision whose fit is one module
         from matcap.refine import fit as L
         P = L

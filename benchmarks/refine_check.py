@@ -135,7 +135,7 @@ def uw(args) -> None:
     from matcap.evaluation.datasets import load_uw_object
     from matcap.photos import downscale_arrays, upscale_normals
     from matcap.refine import refine
-    from matcap.refine.light_stage import fit_light_only
+    from matcap.refine.estimated_lights import fit_light_only
 
     models = _models(args)
     names = args.objects.split(",")

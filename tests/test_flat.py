@@ -287,7 +287,7 @@ def test_intensities_refitted_to_the_maps_undo_a_few_percent_per_photo():
     true ones, the photos rendered with the fit's own model) they come back to the true ratios."""
     import torch
 
-    from matcap.refine.light_stage import _refit_intensities
+    from matcap.refine.known_lights import _refit_intensities
     from matcap.refine.photos import _Bar, _Problem
     from matcap.refine.model import LightParams, PixelParams, shade_fast
     from matcap.refine.settings import RefineSettings
@@ -515,7 +515,7 @@ def test_found_lamps_placed_again_with_the_maps_come_back():
     zero, the ambient held: they come back to within 3 % of their distance."""
     import torch
 
-    from matcap.refine.light_stage import _place_lamps
+    from matcap.refine.known_lights import _place_lamps
     from matcap.refine.photos import _Bar, _Problem
     from matcap.refine.model import LightParams, PixelParams, shade_fast
     from matcap.refine.settings import RefineSettings

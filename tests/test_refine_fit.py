@@ -150,7 +150,7 @@ def test_held_out_light_fit(scene):
     is one line."""
     import dataclasses
 
-    from matcap.refine.light_stage import fit_light_only
+    from matcap.refine.estimated_lights import fit_light_only
 
     truth, lights, photos = scene
     out = fit_light_only(photos[3], truth)
@@ -321,7 +321,7 @@ def test_detail_scores():
     (2.0, 0.25, None, "point", "ambient of 25%"),
 ])
 def test_near_lamp_verdict(radii, share, ratio, model, needle):
-    from matcap.refine.light_stage import _near_verdict
+    from matcap.refine.estimated_lights import _near_verdict
 
     found = {"light_distance_radii": radii, "ambient_share": share, "loss_ratio": ratio}
     why = _near_verdict(found, RefineSettings().replace({"model.light": model}))
@@ -401,7 +401,7 @@ def test_the_light_fits_adam_steps_as_torch_optim_adam():
     for bit: two groups at their own step sizes, a parameter without a gradient left as it is."""
     import torch
 
-    from matcap.refine.light_stage import _Adam
+    from matcap.refine.light_fit import _Adam
 
     def run(make):
         g = torch.Generator().manual_seed(0)

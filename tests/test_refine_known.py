@@ -158,7 +158,7 @@ def test_start_normals_fall_back_to_the_networks_where_lambertian_fails():
     """The known-lights start normals: calibrated Lambertian least squares where that model explains a pixel's
     photos (to ``priors.lambertian_misfit``), the networks' normals where it does not (a highlight in two
     photos)."""
-    from matcap.refine.light_stage import _photo_normals
+    from matcap.refine.light_fit import _photo_normals
 
     rng = np.random.default_rng(0)
     k, h, w = 12, 8, 8

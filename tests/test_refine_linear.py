@@ -233,7 +233,7 @@ def test_lights_that_leave_four_pixels_in_ten_unsolved_are_not_trusted():
     refused (a synthetic scene's near lamps at that share made its normals 8 degrees worse), 65 % pass."""
     from types import SimpleNamespace
 
-    from matcap.refine.light_stage import _distrust
+    from matcap.refine.estimated_lights import _distrust
 
     linear = SimpleNamespace(spread=0.2, residual=0.01, inliers=0.99)
     s = RefineSettings()

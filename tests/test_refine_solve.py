@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-import matcap.refine.light_stage as L
+import matcap.refine.light_fit as L
 import matcap.refine.photos as P
 import matcap.refine.pixel_stage as PX
 from matcap.evaluation.metrics import angular_error_map

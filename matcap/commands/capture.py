@@ -105,7 +105,7 @@ def fit_settings(args, light_model: str, glossy: bool):
 
 
 #: What a candidate light model that the settings left off the estimated-lights path is for, and the flag that
-#: adds it (:func:`matcap.refine.light_stage.candidate_models`).
+#: adds it (:func:`matcap.refine.estimated_lights.candidate_models`).
 CANDIDATE_TIPS = {"glossy": "a glossy object under a far lamp: try --glossy",
                   "near": "a lamp within a few object sizes: try --light-model point"}
 
@@ -116,7 +116,7 @@ def fit_notes(result, settings) -> list[str]:
     lamps were found near, how near; where the networks' maps were kept, why (the fit's reasons) and what to do:
     give the lights, or add a candidate light model the settings left off where only the Lambertian part of the
     check failed."""
-    from matcap.refine.light_stage import candidate_models
+    from matcap.refine.estimated_lights import candidate_models
 
     lines = [f"warning: {result.warning}"] if result.warning else []
     lin = result.report.get("linear") or {}

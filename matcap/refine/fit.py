@@ -13,10 +13,11 @@ The fit's stages (the photos' decoding, :mod:`matcap.photos`, and the networks, 
 before; :mod:`matcap.capture` runs them all), one module each; this module runs them (:func:`refine`:
 :func:`_refine_known` or :func:`_refine_estimated`) and writes the outputs:
   1. photos (:mod:`matcap.refine.photos`): :func:`_prepare` (checks, fit units, clipping levels, light variation);
-  2. lights (:mod:`matcap.refine.light_stage`), on a downsampled copy of the photos: known (a light file or a mirror
-     ball; the directions held) or estimated (the Lambertian factorization of :mod:`matcap.refine.linear` and its
-     check, then the candidate light models of ``candidate_models`` in order, judged by one rule, ``_judge``); each
-     a joint robust fit of the lights and of the maps of a pixel subsample (``_fit_lights``);
+  2. lights, on a downsampled copy of the photos: known (:mod:`matcap.refine.known_lights`: a light file or a
+     mirror ball; the directions held) or estimated (:mod:`matcap.refine.estimated_lights`: the Lambertian
+     factorization of :mod:`matcap.refine.linear` and its check, then the candidate light models of
+     ``candidate_models`` in order, judged by one rule, ``_judge``); each a joint robust fit of the lights and of the
+     maps of a pixel subsample (``_fit_lights`` of :mod:`matcap.refine.light_fit`, what both share);
   3. per pixel (:mod:`matcap.refine.pixel_stage`): with the lights fixed every pixel is an independent problem:
      Levenberg-Marquardt on all pixels at once (in chunks; :mod:`matcap.refine.solve`), on a half-size copy first,
      whose corrections are upsampled as the start of the full-size solve; then each material's roughness and
@@ -36,10 +37,11 @@ import numpy as np
 from matcap.errors import MatcapError
 from matcap.normals import unit_normals
 from matcap.refine.brdf_stage import _pool_brdf, _roughness_stage
-from matcap.refine.light_stage import (
-    CHECK_NAMES, Candidate, RECORD_KEYS, _Check, _LightStage, _check, _judge, _known_light_stage, _light_stage,
-    _median_angle_deg, _place_lamps, _refit_intensities, candidate_models,
+from matcap.refine.estimated_lights import (
+    CHECK_NAMES, Candidate, RECORD_KEYS, _Check, _LightStage, _check, _judge, _light_stage, candidate_models,
 )
+from matcap.refine.known_lights import _known_light_stage, _place_lamps, _refit_intensities
+from matcap.refine.light_fit import _median_angle_deg
 from matcap.refine.photos import (
     _Bar, _Photos, _Problem, _irradiance_parts, _maps_arrays, _plane_normals, _predict, _prepare, _resize,
     lights_to_entries,

@@ -1,0 +1,209 @@
+"""The light stage with known lights (a light file, a mirror ball, the lamps found on a flat sample): the
+directions held, each photo's intensity and one shared ambient fitted (:func:`known_irradiance`,
+:func:`_known_light_stage`); lamps found on a flat sample are placed again with the maps (:func:`_place_lamps`) and
+their intensities fitted again (:func:`_refit_intensities`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from matcap.refine.light_fit import _fit_intensities, _fit_lights, _init_lights, _photo_normals, _to_near
+from matcap.refine.photos import LUMA, _Photos, _Problem, _centre, _luminance, _plane_normals
+from matcap.refine.pixel_stage import _known_subsample, _stage_subsample
+from matcap.refine.settings import RefineSettings
+
+
+def _refit_intensities(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarray], full: _Problem, px,
+                       lights, s: RefineSettings, bar, rng, shadow: float, ambient_free: bool):
+    """Each photo's intensity (and the ambient's fitted orders, with ``ambient_free``) fitted again
+    (:func:`_fit_intensities`) on ``lights.known_pixels`` pixels of the photos ``obs`` (K, H, W, 3) off the
+    outline of ``mask``, their maps started from and anchored to the per-pixel stage's (``px`` of the problem
+    ``full``; ``arrays`` off it). Returns (lights, iterations done, (H, W, 3) the stage's normals: the next
+    stage's start)."""
+    prob, fitted = _stage_subsample(torch, obs, mask, weight, sat_level, arrays, full, px, s, rng, shadow)
+    lights, _, done = _fit_intensities(torch, prob, lights, s, bar, ambient_free=ambient_free)
+    return lights, done, fitted["normal"]
+
+
+
+def _place_lamps(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarray], full: _Problem, px, lights,
+                 s: RefineSettings, bar, rng, shadow: float):
+    """Found lamps (``lights``, "near") placed again: their directions, distances and intensities fitted
+    (:func:`_fit_lights`, ``lights.found_lamps_steps`` steps; the ambient held: a plane's photos cannot tell a room's
+    light from each photo's intensity) together with the maps of ``lights.known_pixels``
+    pixels of the photos ``obs`` (K, H, W, 3) off the outline of ``mask``, started from and anchored to the
+    per-pixel stage's maps (``px`` of the problem ``full``, their wide tilts already taken out; ``arrays`` off it),
+    the normals' gradient field free but for its smooth part (a polynomial of degree
+    ``lights.found_lamps_tilt_degree`` in the plane's position), held at zero. Returns the lamps."""
+    prob, _ = _stage_subsample(torch, obs, mask, weight, sat_level, arrays, full, px, s, rng, shadow)
+    steps = s.lights.found_lamps_steps
+    bar.add_total(steps)
+    placed, _ = _fit_lights(torch, prob, lights.detached(), s, bar, "lamps", steps,
+                            smooth_tilt_held=s.lights.found_lamps_tilt_degree
+                            if s.lights.found_lamps_tilt_degree >= 0 else None, ambient_free=False)
+    return placed
+
+
+
+def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.ndarray,
+                     relative: np.ndarray | None = None, rounds: int = 4) -> np.ndarray:
+    """Per-photo irradiance (K,) of lights whose directions are known, as the start of the light fit: robust
+    Lambertian normals under the lights (:func:`matcap.refine.linear.solve_normals`: shadows and highlights weigh
+    little) alternated with each photo's irradiance by least squares over the pixels it lights. From equal lamps,
+    this moves little; the joint Principled fit that follows finds each photo's intensity.
+
+    luminance: (K, P) photo luminance; directions: (K, 3) unit; normal: (P, 3) start normals (the networks');
+    relative: (K,) given relative irradiances (only their overall scale is found) or None. The overall scale is
+    fixed so that the mean irradiance is the photos' mean luminance times pi (the albedo absorbs the rest).
+    """
+    from matcap.refine.linear import solve_normals
+
+    y = np.asarray(luminance, np.float64)
+    d = np.asarray(directions, np.float64)
+    level = max(float(y.mean()) * math.pi, 1e-9)
+    if relative is not None:
+        rel = np.asarray(relative, np.float64)
+        return rel * level / max(float(rel.mean()), 1e-12)
+    e = np.full(len(d), level)
+    for _ in range(rounds):
+        n, alb, solved = solve_normals(y, d * e[:, None], normal)
+        if solved.sum() < 16:
+            break
+        shading = np.clip((n[solved] @ d.T), 0.0, None).T * alb[solved][None]  # (K, P) per unit irradiance
+        lit = shading > 0.05 * np.maximum(shading.max(axis=1, keepdims=True), 1e-12)
+        num = (y[:, solved] * shading * lit).sum(1)
+        den = (shading ** 2 * lit).sum(1)
+        e = np.clip(np.where(den > 1e-12, num / np.maximum(den, 1e-12), e), 1e-6, None)
+        e *= level / e.mean()
+    return e
+
+
+
+@dataclass
+class _KnownLightStage:
+    """What the known lights' stage hands on: the lights and the per-pixel solve's start and priors.
+
+    lights: :class:`matcap.refine.model.LightParams` in fit units, the directions (and positions) as given;
+    arrays / arrays_copy: the priors of the full-size photos and of the light-fit copy (the networks' maps, the base
+    colour at ``level``); start (H, W, 3) / start_copy: unit normals from calibrated photometric stereo; shadow:
+    the cast-shadow rule's level (0: off); the rest as fit.json ``lights`` records them."""
+
+    lights: Any
+    arrays: dict[str, np.ndarray]
+    start: np.ndarray
+    arrays_copy: dict[str, np.ndarray]
+    start_copy: np.ndarray
+    shadow: float
+    fitted: bool  # intensities (or their level) and ambient fitted, not taken as given
+    ambient_free: bool
+    ambient: str  # "fitted", "given" or "none"
+    level: float  # the factor on the networks' base colour that the photos set (1: none)
+    level_free: bool
+    tilt_held: bool  # a flat sample's mean normal held to the camera axis
+    power_held: bool
+    iters: int
+    solved_fraction: float
+
+
+
+def _known_light_stage(torch, ph: _Photos, copy: tuple, known, flat: dict | None, s: RefineSettings, bar, rng,
+                       device) -> _KnownLightStage:
+    """The known lights' stage: the given directions (and point-light positions) held, each photo's intensity (or,
+    where the file gives relative intensities, one overall scale, their colours held) and the low orders of one
+    ambient shared by every photo fitted, first by least squares, then jointly with a subsample's maps under the
+    Principled model (:func:`_fit_intensities`). On a flat sample whose given lights come without intensities the
+    subsample's mean normal is held to the camera axis (``lights.flat_mean_held``) and the ambient as given; on one
+    whose lights come with relative intensities the photos set their overall power, one factor on the networks'
+    base colour solved with them (``lights.flat_level_free``; under distant lights the ambient held as given). On an
+    object, distant lights whose intensities the file gives are taken as they are, at the least-squares scale, with
+    the file's ambient (a ``lights.json``'s ``sh``; else none) at that scale. The per-pixel solve starts from
+    semi-calibrated Lambertian normals (:func:`known_irradiance`, :func:`_photo_normals`).
+
+    ph: the prepared photos (fit units); copy: ``ph.light_copy(s.lights.side)``, the light-fit copy ((h, w),
+    (obs (K, h, w, 3), mask, priors, weight)); known: :class:`matcap.lightfiles.KnownLights`, one per photo; flat:
+    what :func:`matcap.refine.flat.flat_lights` found, None for an object; rng: draws the pixel subsample."""
+    hw_l, (obs_l, mask_l, arr_l, w_l) = copy
+    mask, obs, arrays, sat_level, scale = ph.mask, ph.obs, ph.arrays, ph.sat_level, ph.scale
+    h, w = mask.shape
+    centre = _centre(torch, mask).numpy().astype(np.float64)
+    directions = np.asarray(known.directions, np.float64)
+    inv_distance = None
+    if known.positions is not None:  # point lights: direction and distance from the object's centre
+        rel = np.asarray(known.positions, np.float64) - centre
+        dist = np.linalg.norm(rel, axis=1)
+        directions, inv_distance = rel / np.maximum(dist, 1e-12)[:, None], 1.0 / np.maximum(dist, 1e-12)
+    given = None if known.intensities is None else np.asarray(known.intensities, np.float64)
+    if given is not None and inv_distance is not None:  # a point light's radiant intensity -> irradiance at the centre
+        given = given * inv_distance[:, None] ** 2
+    luma = np.asarray(LUMA, np.float64)
+    rows_l, cols_l = np.nonzero(mask_l)
+    # a flat sample's photometric normals start from (and, where unsolved, stay at) the plane's own normal: the
+    # robust solve weighs each observation by its residual at the start, and a network normal far off on a
+    # swatch's corner left it there
+    guess = arrays["normal"] if flat is None else _plane_normals(mask)
+    guess_l = arr_l["normal"] if flat is None else _plane_normals(mask_l)
+    irr = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, guess_l[rows_l, cols_l],
+                           None if given is None else given @ luma)
+    s_lum = directions * irr[:, None]
+    # a flat sample keeps the misfit Lambertian normals: the networks' are a poorer fallback on a swatch's relief
+    misfit = s.priors.lambertian_misfit if flat is None else None
+    start, photo_report = _photo_normals(obs, mask, guess, s_lum, positions=known.positions, max_misfit=misfit)
+    arrays = dict(arrays, normal=start)
+    if hw_l == (h, w):
+        arr_l, start_l = arrays, start
+    else:
+        start_l, _ = _photo_normals(obs_l, mask_l, guess_l, s_lum, photo_report, positions=known.positions,
+                                    max_misfit=misfit)
+        arr_l = dict(arr_l, normal=start_l)
+    idx = _known_subsample(mask_l, s, rng)
+    # no cast-shadow rule for a flat sample (a plane facing the camera shades itself only through its small
+    # relief) nor for found lamps (their errors would pass for shadow)
+    shadow = 0.0 if known.source == "estimated" or flat is not None else s.loss.shadow
+    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l, shadow=shadow)
+    lights = _init_lights(torch, prob, s, device, directions)
+    if inv_distance is not None:
+        lights = _to_near(torch, lights, torch.as_tensor(centre, dtype=torch.float32, device=device))
+        lights.inv_distance = torch.as_tensor(inv_distance, dtype=torch.float32, device=device)
+    given_log = None
+    # a flat sample's intensities in the photos' units: their power is held (the photos' scale to fit units alone).
+    # An object's photos hold light the model does not (interreflections, a room's light on its far side): there
+    # the least-squares scale takes its share
+    power_held = given is not None and known.intensity_units == "photos" and flat is not None
+    if given is not None:  # relative intensities: start from them at the least-squares overall scale
+        given_log = torch.as_tensor(np.log(np.maximum(given, 1e-12)), dtype=torch.float32, device=device)
+        offset = (torch.tensor(math.log(scale), dtype=torch.float32, device=device) if power_held
+                  else (lights.log_intensity - given_log).mean())
+        lights.log_intensity = given_log + offset
+        if known.ambient is not None and s.model.ambient != "none":  # the file's ambient, at the same scale
+            amb = np.asarray(known.ambient, np.float64)
+            amb = amb if s.model.ambient == "per-image" else amb.mean(0, keepdims=True)
+            lights.sh = torch.as_tensor(amb, dtype=torch.float32, device=device) * offset.exp()
+    # a flat sample's given lights without intensities: the sample's mean normal held (found lamps have their wide
+    # tilts taken out after the per-pixel solve instead, pixels.found_lamps_detail)
+    tilt_held = flat is not None and given is None and known.source != "estimated" and s.lights.flat_mean_held
+    # a flat sample whose lights' ratios are known: the photos set their overall power (each photo's own intensity
+    # fitted leaves too much freedom for that)
+    ratios_on_plane = flat is not None and given is not None and s.lights.flat_level_free
+    # nor can a plane's photos tell a constant ambient from each photo's own intensity, or, under distant lights
+    # (which light it evenly), from their overall power: there it stays as given
+    ambient_free = not (flat is not None and (given is None or inv_distance is None))
+    # distant lights whose intensities are given are taken as they are, but for that power on a flat sample; the
+    # others are fitted (with their power held, only what else is free: the level, the ambient)
+    fitted = ((inv_distance is not None or given is None or ratios_on_plane) and s.lights.known_iters > 0
+              and (not power_held or ratios_on_plane or (ambient_free and s.model.ambient != "none")))
+    level_free = fitted and ratios_on_plane
+    ambient = ("none" if s.model.ambient == "none" else "fitted" if fitted and ambient_free
+               else "given" if known.ambient is not None else "none")  # what fit.json says of it
+    light_iters, level = 0, 1.0
+    if fitted:
+        lights, level, light_iters = _fit_intensities(torch, prob, lights, s, bar, relative_to=given_log,
+                                                      power_held=power_held, mean_held=tilt_held,
+                                                      level_free=level_free, ambient_free=ambient_free)
+        if level_free:  # the per-pixel solve's prior: the networks' base colour at the level the photos set
+            arrays = dict(arrays, base=np.clip(arrays["base"] * level, 0.0, 1.0).astype(np.float32))
+    return _KnownLightStage(lights, arrays, start, arr_l, start_l, shadow, fitted, ambient_free, ambient, level,
+                            level_free, tilt_held, power_held, light_iters, photo_report["solved_fraction"])
