@@ -49,8 +49,9 @@ either way, as a value of at least 1); roughness RMSE (no scale) and its % below
 averages each RMSE over the sets that have it and gives "% below const." of that mean RMSE against the mean of
 the best constants' RMSEs over the same sets. "light (deg)": the median angle between the lights the result's
 lights.json holds and the true ones, seen from the sample's centre; "lamps off (%)": where both are point lights,
-the median distance between a found lamp and the true one, in per cent of the true lamp's distance; "fit": whether the fit of the photos was kept
-("fitted", with its light model) or the networks' maps were ("kept networks"); in a mean row, how many were fitted.
+the median distance between a found lamp and the true one, in per cent of the true lamp's distance; "fit": whether
+the fit of the photos was kept ("fitted", with its light model) or the networks' maps were ("kept networks"); in a
+mean row, how many were fitted.
 """
 from __future__ import annotations
 
@@ -351,12 +352,11 @@ def fit_summary(result_dir: Path, true_lights: Path) -> dict:
     out = {"light_model": info.get("light_model"), "kept_network_maps": info.get("kept_network_maps"),
            "psnr_db": info.get("psnr_db_mean"), "lights_source": (info.get("lights") or {}).get("source")}
     if (result_dir / "lights.json").is_file():
-        got = light_directions(json.loads((result_dir / "lights.json").read_text()))
-        want = light_directions(json.loads(true_lights.read_text()))
+        got_doc, want_doc = json.loads((result_dir / "lights.json").read_text()), json.loads(true_lights.read_text())
+        got, want = light_directions(got_doc), light_directions(want_doc)
         angles = [math.degrees(math.acos(float(np.clip(got[k] @ want[k], -1.0, 1.0)))) for k in want if k in got]
         out["light_deg"] = float(np.median(angles)) if angles else None
-        got_p, want_p = lamp_positions(json.loads((result_dir / "lights.json").read_text())), lamp_positions(
-            json.loads(true_lights.read_text()))
+        got_p, want_p = lamp_positions(got_doc), lamp_positions(want_doc)
         off = [100.0 * float(np.linalg.norm(got_p[k] - want_p[k]) / max(np.linalg.norm(want_p[k]), 1e-12))
                for k in want_p if k in got_p]
         out["lamp_off_pct"] = float(np.median(off)) if off else None

@@ -8,10 +8,10 @@
 A Lambertian sphere (:func:`matcap.refine.synthetic.matte_ball`: a DiLiGenT-ball-like capture, 16 distant lamps
 within 45 degrees of the view axis, lamps of unequal power (``--unequal``), a slightly varying grey-brown albedo, a
 weak sky-like ambient, photon and read noise, 16-bit linear PNGs, attached shadows, no cast shadows) is written to
-a capture folder and run through the bundled networks (``matcap.estimate.estimate``, the "before") and :func:`matcap.refine.refine` (the "after"). Prints a
-Markdown table: mean normal error against the analytic sphere (``analytic_sphere`` of the mask), light-direction
-error against the true lamps (median / max degrees), re-render PSNR, the check, and the fit given the true lamps
-(``lights.txt``: the known-lights fit).
+a capture folder and run through the bundled networks (``matcap.estimate.estimate``, the "before") and
+:func:`matcap.refine.refine` (the "after"). Prints a Markdown table: mean normal error against the analytic sphere
+(``analytic_sphere`` of the mask), light-direction error against the true lamps (median / max degrees), re-render
+PSNR, the check, and the fit given the true lamps (``lights.txt``: the known-lights fit).
 
 ``--capture FOLDER`` (repeatable) runs photographed balls instead: a folder of photos whose mask is the ball's
 disc, with a ``lights.txt`` (the UW gray ball: 12 photos, 8-bit read as linear), shrunk to ``--max-side``.
