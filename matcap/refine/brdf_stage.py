@@ -67,12 +67,15 @@ def _roughness_stage(torch, full: _Problem, px, lights, s: RefineSettings, bar, 
     return PixelParams(*out), choice
 
 
-def _pool_brdf(torch, full: _Problem, px, lights, hw: tuple[int, int], s: RefineSettings):
+def _pool_brdf(torch, full: _Problem, px, lights, hw: tuple[int, int], s: RefineSettings, outputs: bool):
     """Known lights, after the roughness stage: each pixel's roughness and metallic become the median of their
     ``roughness.pool`` x ``roughness.pool`` window among the fitted pixels ``full`` (of an ``hw`` frame) where its
     own photos allow those values (their cost, :func:`matcap.refine.roughness.value_scores`, within
-    ``roughness.tolerance`` of its cost at its fitted ones): a surface's finish varies far more slowly than one
-    pixel's photos pin it down where they show no highlight, and the median keeps the edges between materials.
+    ``roughness.tolerance`` of its cost at its fitted ones), and, where these maps are the fit's ``outputs``,
+    wherever the model does not explain its photos at its fitted ones (cost per observation above
+    ``roughness.explained``; maps that place found lamps keep such a pixel's own values, the ones that explain its
+    photos best): a surface's finish varies far more slowly than one pixel's photos pin it down where they show no
+    highlight, and the median keeps the edges between materials.
     Each channel of such a pixel's base colour moves by as much as its closed-form base colour (the one scored, at
     its fitted normal) changes from the fitted roughness and metallic to the pooled ones, so that the maps still
     explain the photos (a shift, not a factor: a glossy pixel's closed-form base colour can be near 0); the normals
@@ -95,7 +98,10 @@ def _pool_brdf(torch, full: _Problem, px, lights, hw: tuple[int, int], s: Refine
             lambda obs, upper, pos, nrm, sl: value_scores(torch, obs, upper, pos, nrm,
                                                           ((rough[sl], metal[sl]), (r_pool[sl], m_pool[sl])),
                                                           lights, s.roughness.noise))
-        take = torch.from_numpy(scores[1, 0] - scores[0, 0] <= s.roughness.tolerance).to(rough.device)
+        # a pixel the model does not explain at its own values (a mixed pixel at an edge between materials) has
+        # no preference among values worth keeping: it takes its window's
+        unexplained = (scores[0, 0] > s.roughness.explained * 3 * full.obs.shape[0]) & outputs
+        take = torch.from_numpy((scores[1, 0] - scores[0, 0] <= s.roughness.tolerance) | unexplained).to(rough.device)
         shift = torch.from_numpy((scores[1, 1:] - scores[0, 1:]).T.copy()).to(base.device)
         new_base = torch.where(take[:, None], base + shift, base).clamp(0.01, 0.99)
     params = PixelParams(px.grad.detach().clone(), torch.where(take[:, None], _logit(new_base), px.base_logit.detach()),

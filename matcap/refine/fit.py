@@ -175,7 +175,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
     for _ in range(rounds):
         copy, px_l, *_, round_rough_s = _per_pixel_stage(torch, obs_l, mask_l, w_l, sat_level, arr_l, start_l,
                                                          lights, s, bar, shadow, plane=flat is not None,
-                                                         lights_found=found)
+                                                         lights_found=found, outputs=False)
         rounds_rough_s += round_rough_s
         if place_again:
             px_l = _plane_detail(torch, copy, px_l, mask_l, s.pixels.found_lamps_detail)
@@ -189,7 +189,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
         start = start_l if hw_l == (h, w) else unit_normals(_resize(start_l, (h, w), "linear"))
     full, px_full, mixing, iters_done, restarts, choice, pooled_share, rough_s = _per_pixel_stage(
         torch, obs, mask, weight, sat_level, arrays, start, lights, s, bar, shadow, plane=flat is not None,
-        lights_found=found)
+        lights_found=found, outputs=True)
     if choice is not None:
         timings["roughness_s"] = rough_s + rounds_rough_s
     detail = s.pixels.found_lamps_detail if found else 0.0
@@ -237,12 +237,13 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
 
 
 def _per_pixel_stage(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarray], start, lights,
-                     s: RefineSettings, bar, shadow: float, plane: bool, lights_found: bool):
+                     s: RefineSettings, bar, shadow: float, plane: bool, lights_found: bool, outputs: bool):
     """Known lights' per-pixel stage under the fixed ``lights``: the solve (:func:`_solve_maps`: photos ``obs``
     (K, H, W, 3) in fit units, ``mask`` (H, W), ``weight`` (H, W), ``sat_level`` (K, 3), priors ``arrays``, start
     normals ``start`` (H, W, 3) or None), the neighbour restarts, the roughness stage (``plane``, ``lights_found``:
-    see :func:`_roughness_stage`) and the pooling. Returns (problem, params, outline mixing, iterations, restarts
-    record, roughness choice or None, pooled share, roughness stage seconds)."""
+    see :func:`_roughness_stage`) and the pooling (``outputs``: these maps are the fit's, not a round's that places
+    found lamps; see :func:`matcap.refine.brdf_stage._pool_brdf`). Returns (problem, params, outline mixing,
+    iterations, restarts record, roughness choice or None, pooled share, roughness stage seconds)."""
     full, px_full, mixing, iters_done = _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s,
                                                     bar, s.pixels.coarse_iters, s.pixels.fine_iters, shadow=shadow)
     restarts = None
@@ -257,7 +258,7 @@ def _per_pixel_stage(torch, obs, mask, weight, sat_level, arrays: dict[str, np.n
         t_r = time.perf_counter()
         px_full, choice = _roughness_stage(torch, full, px_full, lights, s, bar, mixing, plane=plane,
                                            lights_found=lights_found)
-        px_full, pooled_share = _pool_brdf(torch, full, px_full, lights, mask.shape, s)
+        px_full, pooled_share = _pool_brdf(torch, full, px_full, lights, mask.shape, s, outputs)
         rough_s = time.perf_counter() - t_r
     return full, px_full, mixing, iters_done, restarts, choice, pooled_share, rough_s
 

@@ -246,10 +246,11 @@ class RoughnessSettings:
     rate_floor: float = 0.02
     """The least share a roughness is taken to be decided at, bounding a decided pixel's weight (1 / share)."""
     explained: float = 0.25
-    """A flat sample: a decided pixel counts toward its material's target only where its lowest cost per
-    observation (photo and channel) is at most this, log(1 + x^2) with x the residual over ``noise`` times the
-    pixel's brightness (0.25: about half of that scale); a pixel the model does not explain (a boundary between
-    materials, a wrong normal) can decide a wrong value."""
+    """The model explains a pixel where its cost per observation (photo and channel) is at most this, log(1 + x^2)
+    with x the residual over ``noise`` times the pixel's brightness (0.25: about half of that scale). A pixel the
+    model does not explain (a boundary between materials, a wrong normal) can decide a wrong value: on a flat sample
+    only an explained decided pixel counts toward its material's target, and with known lights an output map's
+    pixel not explained at its fitted values takes its window's values (``pool``)."""
     sample: int = 20000
     """An object's targets come from the scores of this many of its pixels (a random sample); then only the
     pixels farther than ``moved`` from their group's target are scored."""
@@ -270,8 +271,9 @@ class RoughnessSettings:
     the networks') by more than this (such a pixel keeps the normal the per-pixel solve gave it)."""
     pool: int = 3
     """After the last solve, each pixel's roughness and metallic take the median of this many pixels' square window
-    around it where its photos allow them (the mask's pixels only; its base colour shifted to match, its normal
-    kept); 1: each pixel keeps its own."""
+    around it where its photos allow them, and in the fit's output maps also where the model does not explain them
+    (``explained``) (the mask's pixels only; its base colour shifted to match, its normal kept); 1: each pixel keeps
+    its own."""
 
 
 @dataclass
