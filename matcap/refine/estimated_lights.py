@@ -46,7 +46,6 @@ def _linear_lights(obs, mask, arrays, s: RefineSettings, rng, lambertian: bool =
     return fit
 
 
-
 def _integrable(fit, obs, mask, network, contour, c_normal, contour_weight, equal_lights):
     """``fit`` with its ambiguity fixed by integrability (:func:`matcap.refine.linear.integrable_ambiguity`) on
     every pixel of the light-fit copy; unchanged where that is ill-posed."""
@@ -76,7 +75,6 @@ def _integrable(fit, obs, mask, network, contour, c_normal, contour_weight, equa
                                normal=b / np.maximum(size, 1e-12)[:, None], albedo=size)
 
 
-
 def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSettings,
               lambertian: bool = True) -> str | None:
     """Why the factorization's lights may not move the maps (one line), or None: the check of docs/refine.md
@@ -94,7 +92,6 @@ def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSett
         return (f"under the lights found only {solved_fraction:.0%} of the object's pixels get a normal facing the "
                 f"camera (trusted from {s.checks.solved:.0%})")
     return None
-
 
 
 @dataclass
@@ -133,11 +130,9 @@ class Candidate:
         return {"ambient_share": self.ambient_share, "solved_fraction": self.solved_fraction}
 
 
-
 RECORD_KEYS = {"near": "near_fit", "glossy": "principled_fit"}  # fit.json ``linear`` key of a later candidate
 
 CHECK_NAMES = {"near": "near lamps", "glossy": "principled"}  # fit.json ``linear`` ``check``: the one accepted
-
 
 
 def candidate_models(s: RefineSettings) -> list[str]:
@@ -147,7 +142,6 @@ def candidate_models(s: RefineSettings) -> list[str]:
     if s.model.light == "point":
         return ["point", "near"]
     return ["distant"] + (["near"] if s.candidates.near else []) + (["glossy"] if s.candidates.glossy else [])
-
 
 
 @dataclass
@@ -171,7 +165,6 @@ class _Check:
     def s_lum(self) -> np.ndarray:
         """(K, 3) the factorization's lights: direction times luminance irradiance."""
         return self.linear.directions * self.linear.irradiance[:, None]
-
 
 
 def _check(ph: _Photos, s: RefineSettings, whole: bool) -> _Check:
@@ -198,7 +191,6 @@ def _check(ph: _Photos, s: RefineSettings, whole: bool) -> _Check:
     return _Check(whole, idx, linear, start, report, reason, lambertian_only)
 
 
-
 @dataclass
 class _LightStage:
     """The light stage's result for one candidate (:func:`_light_stage`).
@@ -220,7 +212,6 @@ class _LightStage:
     iters: int
     bar: Any
     seconds: float
-
 
 
 def _light_stage(torch, ph: _Photos, chk: _Check, model: str, s: RefineSettings, progress) -> _LightStage:
@@ -278,7 +269,6 @@ def _light_stage(torch, ph: _Photos, chk: _Check, model: str, s: RefineSettings,
     return _LightStage(lights, trusted, arrays, start, near, dist, found, iters, bar, time.perf_counter() - t0)
 
 
-
 def _judge(c: Candidate, chk: _Check, earlier: list[Candidate], s: RefineSettings) -> tuple[str | None, bool]:
     """The rule of the estimated-lights path: (why candidate ``c`` may not move the maps, None where it may; whether
     that refusal holds for every later candidate too). A finding not measured yet (None) refuses nothing:
@@ -311,7 +301,6 @@ def _judge(c: Candidate, chk: _Check, earlier: list[Candidate], s: RefineSetting
     return None, False
 
 
-
 def _near_verdict(found: dict, s: RefineSettings) -> str | None:
     """Why a near-lamp fit's lamps may not move the maps (one line), or None
     (:class:`matcap.refine.settings.CandidateSettings` ``near_*``).
@@ -334,7 +323,6 @@ def _near_verdict(found: dict, s: RefineSettings) -> str | None:
     return None
 
 
-
 def _needs_loss_ratio(found: dict, s: RefineSettings) -> bool:
     """Whether :func:`_near_verdict` turns on the loss ratio for these findings (it costs ``lights.iters`` more
     joint steps): only for lamps near enough, under an ambient neither too strong nor a dark room's."""
@@ -342,11 +330,9 @@ def _needs_loss_ratio(found: dict, s: RefineSettings) -> bool:
     return radii is not None and radii <= cs.near_distance and cs.near_dark < share <= cs.near_ambient
 
 
-
 def _object_radius(mask: np.ndarray) -> float:
     """Radius of the disc as large as the mask, in half-widths of the framing plane (:func:`plane_positions`)."""
     return max(math.sqrt(float(np.count_nonzero(mask)) / math.pi) * 2.0 / mask.shape[1], 1e-6)
-
 
 
 def fit_light_only(image: np.ndarray, maps: MaterialMaps, settings: RefineSettings | None = None) -> dict[str, Any]:

@@ -29,7 +29,6 @@ def _refit_intensities(torch, obs, mask, weight, sat_level, arrays: dict[str, np
     return lights, done, fitted["normal"]
 
 
-
 def _place_lamps(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarray], full: _Problem, px, lights,
                  s: RefineSettings, bar, rng, shadow: float):
     """Found lamps (``lights``, "near") placed again: their directions, distances and intensities fitted
@@ -46,7 +45,6 @@ def _place_lamps(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarr
                             smooth_tilt_held=s.lights.found_lamps_tilt_degree
                             if s.lights.found_lamps_tilt_degree >= 0 else None, ambient_free=False)
     return placed
-
 
 
 def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.ndarray,
@@ -82,7 +80,6 @@ def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.n
     return e
 
 
-
 @dataclass
 class _KnownLightStage:
     """What the known lights' stage hands on: the lights and the per-pixel solve's start and priors.
@@ -107,7 +104,6 @@ class _KnownLightStage:
     power_held: bool
     iters: int
     solved_fraction: float
-
 
 
 def _known_light_stage(torch, ph: _Photos, copy: tuple, known, flat: dict | None, s: RefineSettings, bar, rng,

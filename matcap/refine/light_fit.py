@@ -53,7 +53,6 @@ def _photo_normals(obs, mask, network, s_lum, report=None, positions=None, chunk
     return start, report
 
 
-
 def _near_vectors(s_lum: np.ndarray, positions: np.ndarray, centre: np.ndarray, hw: tuple[int, int], rows,
                   cols) -> np.ndarray:
     """(K, P, 3) per-pixel light vectors of lamps at ``positions`` (K, 3) whose irradiance times direction at
@@ -68,7 +67,6 @@ def _near_vectors(s_lum: np.ndarray, positions: np.ndarray, centre: np.ndarray, 
     r2 = (q * q).sum(-1, keepdims=True)
     r2c = ((p - centre) ** 2).sum(-1)[:, None, None]
     return np.linalg.norm(s_lum, axis=1)[:, None, None] * q / np.sqrt(r2) * (r2c / r2)
-
 
 
 def _init_lights(torch, prob: _Problem, s: RefineSettings, device, directions=None):
@@ -98,7 +96,6 @@ def _init_lights(torch, prob: _Problem, s: RefineSettings, device, directions=No
     return LightParams("directional", vec, log_i, sh)
 
 
-
 def _lambertian_direction(torch, obs_k, n, alb, luma):
     """Unit direction of photo k's light by robust Lambertian least squares on normals ``n`` (N, 3) and luminance
     albedo ``alb`` (N,): ``obs_k`` (N, 3); attached shadows and outliers dropped in 3 rounds."""
@@ -120,14 +117,12 @@ def _lambertian_direction(torch, obs_k, n, alb, luma):
     return L / L.norm()
 
 
-
 def _above_horizon(torch, d):
     """A light behind the object cannot light what the camera sees: keep it at the horizon."""
     if d[2] < 0.05:
         d = torch.cat([d[:2], d[2:].clamp(min=0.05)])
         d = d / d.norm()
     return d
-
 
 
 def _to_near(torch, lights, centre):
@@ -140,12 +135,10 @@ def _to_near(torch, lights, centre):
                        lights.sh.detach().clone(), torch.zeros(k, device=lights.vec.device), centre)
 
 
-
 def _median_angle_deg(torch, before, after) -> float:
     """Median angle (degrees) between two sets of lights' directions (K, 3), seen from their centre."""
     cos = (before.directions() * after.directions()).sum(-1).clamp(-1.0, 1.0)
     return round(float(torch.rad2deg(torch.arccos(cos)).median()), 3)
-
 
 
 class _Adam:
@@ -178,7 +171,6 @@ class _Adam:
                      capturable=False, differentiable=False, fused=None, grad_scale=None, found_inf=None,
                      has_complex=False, amsgrad=False, beta1=0.9, beta2=0.999, lr=lr, weight_decay=0.0, eps=1e-8,
                      maximize=False)
-
 
 
 def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: str, iters: int,
@@ -255,7 +247,6 @@ def _fit_lights(torch, prob: _Problem, lights, s: RefineSettings, bar, label: st
     for t in lights.tensors():
         t.requires_grad_(False)
     return lights.detached(), data_mean
-
 
 
 def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, relative_to=None,
