@@ -82,7 +82,7 @@ def _pool_brdf(torch, full: _Problem, px, lights, hw: tuple[int, int], s: Refine
     keep their fit.
     Returns (the new :class:`PixelParams`, the share of pixels that took the pooled values)."""
     from matcap.refine.model import PixelParams, _logit
-    from matcap.refine.roughness import value_scores
+    from matcap.refine.roughness import explained, value_scores
 
     size = s.roughness.pool
     if size < 2 or len(full) == 0:
@@ -100,7 +100,7 @@ def _pool_brdf(torch, full: _Problem, px, lights, hw: tuple[int, int], s: Refine
                                                           lights, s.roughness.noise))
         # a pixel the model does not explain at its own values (a mixed pixel at an edge between materials) has
         # no preference among values worth keeping: it takes its window's
-        unexplained = (scores[0, 0] > s.roughness.explained * 3 * full.obs.shape[0]) & outputs
+        unexplained = ~explained(scores[0, 0], 3 * full.obs.shape[0], s.roughness) & outputs
         take = torch.from_numpy((scores[1, 0] - scores[0, 0] <= s.roughness.tolerance) | unexplained).to(rough.device)
         shift = torch.from_numpy((scores[1, 1:] - scores[0, 1:]).T.copy()).to(base.device)
         new_base = torch.where(take[:, None], base + shift, base).clamp(0.01, 0.99)

@@ -247,6 +247,12 @@ def _vertex(costs: np.ndarray, lg: np.ndarray) -> np.ndarray:
     return np.where((best == 0) | (best == len(lg) - 1), lg[best], vertex)
 
 
+def explained(cost: np.ndarray, observations: int, s: RoughnessSettings) -> np.ndarray:
+    """(N,) bool: where the model explains a pixel, its cost (N,) (:func:`grid_costs`, :func:`value_scores`; a sum
+    over ``observations``, photos x 3 channels) at most ``s.explained`` per observation."""
+    return cost <= s.explained * observations
+
+
 def _span(costs: np.ndarray, s: RoughnessSettings):
     """(allowed (G, N) bool, lo (N,), hi (N,), decided (N,) bool) of grid costs (G, N): the grid values within
     ``s.tolerance`` of each pixel's lowest cost, their least and greatest log roughness, and whether those span at
@@ -422,7 +428,7 @@ def choose_roughness(costs: np.ndarray, base: np.ndarray, fitted: np.ndarray, s:
     middle = np.where(decided, _vertex(costs, np.log(grid)), (lo + hi) / 2.0)
     rate = np.ones(len(grid)) if rates is None else np.maximum(np.asarray(rates, np.float64), s.rate_floor)
     weight = 1.0 / rate[np.searchsorted((lg[1:, 0] + lg[:-1, 0]) / 2.0, middle)]  # the grid value nearest
-    evidence = decided if observations is None else decided & (costs.min(axis=0) <= s.explained * observations)
+    evidence = decided if observations is None else decided & explained(costs.min(axis=0), observations, s)
     if not evidence.any():
         evidence = decided
     targets = np.full(n_groups, np.nan)
