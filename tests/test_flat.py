@@ -418,8 +418,9 @@ def test_principled_plane_jacobian_is_forward_mode_autodiff():
 
 
 def test_flat_sample_under_distant_lamps_keeps_the_networks_maps_with_the_planes_normals():
-    """Distant lamps, no lights given: the networks' base colour, roughness and metallic are kept, the normals are
-    the camera axis: nearer the truth than networks' normals that bend with the light (as ours do on swatches)."""
+    """Distant lamps, no lights given: the networks' roughness and metallic are kept, the normals are the camera
+    axis (nearer the truth than networks' normals that bend with the light, as ours do on swatches) and the base
+    colour is the photos' mean at the networks' level (nearer the truth than the networks' flat grey)."""
     from matcap.refine import RefineSettings, refine
 
     n, albedo = _swatch()
@@ -432,18 +433,54 @@ def test_flat_sample_under_distant_lamps_keeps_the_networks_maps_with_the_planes
     assert result.report["flat"]["lamps"] == "distant" and result.report["kept_network_maps"]
     assert np.array_equal(result.maps.normal[..., 2], np.ones(n.shape[:2], np.float32))
     assert not result.maps.normal[..., :2].any()
-    assert np.array_equal(result.maps.base_color, start.base_color)
     assert np.array_equal(result.maps.roughness, start.roughness)
+    assert result.report["flat"]["base_color"].startswith("the photos' mean")
+    base = result.maps.base_color.astype(np.float64)
+    assert abs(base.mean() / 0.5 - 1.0) < 0.05  # the networks' level
+    scale = (base * albedo).sum() / (base * base).sum()
+    err, err_start = np.sqrt(np.mean((scale * base - albedo) ** 2)), np.sqrt(np.mean((albedo.mean() - albedo) ** 2))
+    assert err < 0.25 * err_start, (err, err_start)
     before, after = _angle(bent, n).mean(), _angle(result.maps.normal, n).mean()
     assert after < 0.5 * before, (before, after)
     assert result.report["linear"]["reason"].startswith("a flat sample under distant lamps")
-    assert result.report["linear"]["reason"].endswith("its normal map is the plane's (the camera axis)")
+    assert result.report["linear"]["reason"].endswith("its normal map is the plane's (the camera axis) and its base "
+                                                      "colour the photos' mean")
     from matcap.commands.capture import fit_notes
 
     (note,) = fit_notes(result, RefineSettings())
     assert note.startswith("note: the fit kept the networks' maps: a flat sample under distant lamps")
     assert note.endswith("(or shoot it under a lamp 1-3 sample widths away, whose falloff places it)"), note
     assert result.report["settings"]["checks"]["spread"] == RefineSettings().checks.spread  # the settings as given
+
+
+def test_plane_base_color_averages_the_reliefs_shading_out_and_leaves_clipped_observations_out():
+    """Lamps around a Lambertian swatch, each photo at its own exposure, a corner of one photo clipped: the photos'
+    mean over their irradiance is the albedo (at the given level), where any one photo, or a mean that takes the
+    clipped corner in, is not."""
+    from matcap.refine.flat import plane_base_color
+
+    n, albedo = _swatch()
+    k = 12
+    az = np.linspace(0.0, 2.0 * np.pi, k, endpoint=False)
+    el = np.radians(np.resize([30.0, 45.0, 60.0], k))  # every elevation at azimuths around the circle
+    dirs = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
+    photos = [(albedo * e * np.clip(n @ d, 0.0, None)[..., None]).astype(np.float32)
+              for d, e in zip(dirs, np.linspace(0.5, 2.0, k))]
+    photos[0][:8, :8] = photos[0].max()
+    level = np.full_like(albedo, 0.4)
+    base = plane_base_color(photos, np.ones(n.shape[:2], bool), level)
+    assert base.shape == albedo.shape and base.dtype == np.float32
+
+    def rel_error(x):  # after the least-squares scale onto the albedo
+        x = np.asarray(x, np.float64)
+        return np.abs(x * ((x * albedo).sum() / (x * x).sum()) - albedo) / albedo
+
+    assert np.percentile(rel_error(base), 99) < 0.02, np.percentile(rel_error(base), 99)
+    assert abs((base * level).sum() / (level * level).sum() - 1.0) < 0.05  # the level's own (least squares)
+    assert np.percentile(rel_error(photos[5]), 99) > 0.05  # one photo carries the relief's shading
+    luma = np.array([0.2126, 0.7152, 0.0722], np.float32)
+    taken_in = np.mean([p / np.median(p @ luma) for p in photos], 0)
+    assert rel_error(taken_in)[:8, :8].max() > 0.04 > rel_error(base)[:8, :8].max()  # the clipped corner
 
 
 def test_large_flat_sample_meets_the_networks_as_a_copy(monkeypatch):

@@ -230,3 +230,23 @@ def test_bad_arguments_exit_2_with_one_line(argv, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and err.startswith("flat_check.py: error:")
+
+
+def test_a_swatch_and_its_twin_under_distant_lights_give_the_same_photos():
+    """benchmarks/flat_twin.py: the relief turned inside out under the lights turned half a turn renders the same
+    photos (to float rounding), while the relief turned alone does not."""
+    import flat_twin
+
+    maps = _uniform(16, rough=0.4)
+    rng = np.random.default_rng(0)
+    t = rng.normal(0.0, 0.2, (16, 16, 2)).astype(np.float32)
+    n = np.concatenate([t, np.ones((16, 16, 1), np.float32)], -1)
+    maps.normal = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    lights = F.make_lights("far", 2, 0, 16)
+    twin_maps, twin_lights = flat_twin.twin(maps, lights)
+    assert np.allclose(twin_maps.normal[..., :2], -maps.normal[..., :2])
+    assert [tuple(v.direction) for v in twin_lights] == [(-v.direction[0], -v.direction[1], v.direction[2])
+                                                        for v in lights]
+    photos = F.render_photos(maps, lights, spp=4, seed=1)
+    assert flat_twin.psnr(photos, F.render_photos(twin_maps, twin_lights, spp=4, seed=1)) > 110.0
+    assert flat_twin.psnr(photos, F.render_photos(twin_maps, lights, spp=4, seed=1)) < 60.0

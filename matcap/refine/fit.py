@@ -85,8 +85,9 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
     falloff of their light over the plane (:func:`matcap.refine.flat.flat_lights`) and held like known ones; where
     the falloff does not place them (distant lamps), the networks' maps are kept (the photos of a plane under
     distant lights hold its relief only up to its sign and depth) and the lights fitted to them, but for the
-    normals: every one is the camera axis (the plane's own; on rendered flat samples the networks' normals came out
-    further from the truth than that, on every one). ``found_lamps``: what :func:`matcap.refine.flat.flat_lights`
+    normals, every one the camera axis (the plane's own; on rendered flat samples the networks' normals came out
+    further from the truth than that, on every one), and the base colour, the photos' mean
+    (:func:`matcap.refine.flat.plane_base_color`). ``found_lamps``: what :func:`matcap.refine.flat.flat_lights`
     returned for these photos and ``maps.mask``, where the caller found them already (the 8-bit decoding's choice):
     not found again.
     """
@@ -111,10 +112,14 @@ def refine(images, maps: MaterialMaps, settings: RefineSettings | None = None,
             lights, found = found_lamps.lights, found_lamps.record
             lamps_s = time.perf_counter() - t0
             if lights is None:  # distant lamps: the networks' maps are kept (the lights fitted to them), but for
-                # their normals, which are the plane's own (the camera axis)
-                plane = replace(maps, normal=np.where(maps.mask[..., None], _plane_normals(maps.mask), 0.0))
+                # their normals, which are the plane's own (the camera axis), and their base colour's pattern,
+                # which is the photos' own
+                from matcap.refine.flat import plane_base_color
+
+                plane = replace(maps, normal=np.where(maps.mask[..., None], _plane_normals(maps.mask), 0.0),
+                                base_color=plane_base_color(images, maps.mask, maps.with_defaults().base_color))
                 result = _refine_estimated(torch, images, plane, s, progress, keep=FLAT_DISTANT)
-                result.report["flat"] = found
+                result.report["flat"] = {**found, "base_color": FLAT_DISTANT_BASE}
             else:
                 result = _refine_known(torch, images, maps, s, progress, lights, flat=found)
             timings = result.report["timings"]  # the lamps' search is part of the fit's time
@@ -266,7 +271,10 @@ def _per_pixel_stage(torch, obs, mask, weight, sat_level, arrays: dict[str, np.n
 #: Why a flat sample under distant lamps keeps the networks' maps (fit.json ``linear`` ``reason``).
 FLAT_DISTANT = ("a flat sample under distant lamps: its photos hold its relief only up to the relief's sign and "
                 "depth (the lamps' falloff over it did not place them), so its normal map is the plane's (the camera "
-                "axis)")
+                "axis) and its base colour the photos' mean")
+#: Where such a sample's base colour comes from (fit.json ``flat`` ``base_color``).
+FLAT_DISTANT_BASE = ("the photos' mean, each photo over its median luminance (the plane's irradiance), at the "
+                     "networks' level")
 
 
 def _refine_estimated(torch, images, maps: MaterialMaps, s: RefineSettings, progress,

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple
 import numpy as np
 
 from matcap.errors import MatcapError
+from matcap.refine.photos import LUMA
 
 if TYPE_CHECKING:
     from matcap.lightfiles import KnownLights
@@ -142,6 +143,40 @@ class PlaneLamps:
     def distance_widths(self) -> np.ndarray:
         """(K,) distances in sample widths."""
         return self.distance / self.width
+
+
+def plane_base_color(images, mask: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """A flat sample's base colour under distant lamps whose directions are not known.
+
+    images: K (H, W, 3) linear RGB photos; mask: (H, W) bool, the sample; level: (H, W, 3) linear RGB, a base colour
+    whose overall level is kept (the networks'). Returns (H, W, 3) float32: each pixel's mean over the photos, each
+    photo divided by its median luminance over the sample (a distant lamp lights the whole plane alike, so that
+    median is the photo's irradiance), observations at a photo's clipping level (0.999 of its maximum in a channel)
+    left out; then one least-squares scale over every channel onto ``level``, and clipped to [0, 1]. With the lamps
+    around the sample, the relief's own shading (brighter on the side facing each lamp) averages out over the
+    photos; the photos cannot say more here, as they hold the relief only up to its sign and depth. Outside the
+    mask: ``level``.
+    """
+    mask = np.asarray(mask, bool)
+    total = np.zeros(mask.shape + (3,), np.float64)
+    count = np.zeros(mask.shape + (1,), np.float64)
+    luma = np.asarray(LUMA, np.float32)
+    for im in images:
+        im = np.asarray(im, np.float32)
+        irradiance = float(np.median(im[mask] @ luma))
+        if not irradiance > 0:
+            continue
+        clip = 0.999 * im[mask].max(axis=0)
+        seen = ~(im >= np.where(clip > 0, clip, np.inf)).any(-1, keepdims=True) & mask[..., None]
+        total += np.where(seen, im / irradiance, 0.0)
+        count += seen
+    ref = np.asarray(level, np.float64)
+    mean = np.where(count > 0, total / np.maximum(count, 1.0), 0.0)
+    den = float((mean[mask] ** 2).sum())
+    if not den > 0:
+        return np.asarray(level, np.float32)
+    mean *= float((mean[mask] * ref[mask]).sum()) / den
+    return np.clip(np.where(mask[..., None] & (count > 0), mean, ref), 0.0, 1.0).astype(np.float32)
 
 
 def _dominant_channel(images) -> np.ndarray:
