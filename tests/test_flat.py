@@ -448,7 +448,8 @@ def test_flat_sample_under_distant_lamps_keeps_the_networks_maps_with_the_planes
     from matcap.commands.capture import fit_notes
 
     (note,) = fit_notes(result, RefineSettings())
-    assert note.startswith("note: the fit kept the networks' maps: a flat sample under distant lamps")
+    assert note.startswith("note: the fit kept the networks' roughness and metallic: a flat sample under distant "
+                           "lamps")
     assert note.endswith("(or shoot it under a lamp 1-3 sample widths away, whose falloff places it)"), note
     assert result.report["settings"]["checks"]["spread"] == RefineSettings().checks.spread  # the settings as given
 

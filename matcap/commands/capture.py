@@ -129,10 +129,12 @@ def fit_notes(result, settings) -> list[str]:
         if lin.get("lambertian_only") and settings.model.light != "point":
             listed = candidate_models(settings)
             tips = [tip for model, tip in CANDIDATE_TIPS.items() if model not in listed]
-        if (result.report.get("flat") or {}).get("lamps") == "distant":
+        flat_distant = (result.report.get("flat") or {}).get("lamps") == "distant"
+        if flat_distant:
             tips.append("or shoot it under a lamp 1-3 sample widths away, whose falloff places it")
         hint = f" ({'; '.join(tips)})" if tips else ""
-        lines.append(f"note: the fit kept the networks' maps: {lin.get('reason')}. Lights you know make the fit "
+        kept = "the networks' roughness and metallic" if flat_distant else "the networks' maps"
+        lines.append(f"note: the fit kept {kept}: {lin.get('reason')}. Lights you know make the fit "
                      f"well-posed: give them with --lights FILE (a table of their directions will do), or put a mirror "
                      f"ball in the photos (--ball auto)"
                      f"{hint}")
