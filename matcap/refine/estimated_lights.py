@@ -17,7 +17,7 @@ from matcap.errors import MatcapError
 from matcap.refine.light_fit import _Adam, _fit_lights, _init_lights, _photo_normals, _to_near
 from matcap.refine.photos import (
     LUMA, _Bar, _Photos, _Problem, _centre, _loss, _luminance, _maps_arrays, _median_distance, _predict,
-    ambient_share, check_inputs, lights_to_entries,
+    ambient_share, check_inputs, clipping_level, lights_to_entries,
 )
 from matcap.refine.pixel_stage import outline_zone
 from matcap.refine.settings import RefineSettings
@@ -352,7 +352,7 @@ def fit_light_only(image: np.ndarray, maps: MaterialMaps, settings: RefineSettin
     torch.manual_seed(s.seed)
     scale = 0.5 / float(stack[:, mask].mean())
     obs = stack * scale
-    sat = np.where(obs[0][mask].max(axis=0) > 0, obs[0][mask].max(axis=0) * 0.999, np.inf)[None].astype(np.float32)
+    sat = clipping_level(obs[0], mask)[None]
     arrays = _maps_arrays(maps)
     full = _Problem(torch, obs, mask, arrays, np.ones(mask.shape, np.float32), sat, device)
     from matcap.refine.model import PixelParams

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple
 import numpy as np
 
 from matcap.errors import MatcapError
-from matcap.refine.photos import LUMA
+from matcap.refine.photos import LUMA, clipping_level
 
 if TYPE_CHECKING:
     from matcap.lightfiles import KnownLights
@@ -166,8 +166,7 @@ def plane_base_color(images, mask: np.ndarray, level: np.ndarray) -> np.ndarray:
         irradiance = float(np.median(im[mask] @ luma))
         if not irradiance > 0:
             continue
-        clip = 0.999 * im[mask].max(axis=0)
-        seen = ~(im >= np.where(clip > 0, clip, np.inf)).any(-1, keepdims=True) & mask[..., None]
+        seen = ~(im >= clipping_level(im, mask)).any(-1, keepdims=True) & mask[..., None]
         total += np.where(seen, im / irradiance, 0.0)
         count += seen
     ref = np.asarray(level, np.float64)

@@ -48,6 +48,13 @@ def check_inputs(images, mask: np.ndarray) -> np.ndarray:
     return np.clip(stack, 0.0, None)
 
 
+def clipping_level(photo: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(3,) float32: where photo (H, W, 3) clips, per channel: 0.999 of its maximum over ``mask`` (H, W) bool; inf for
+    a channel that is black there. An observation at or above it is clipped: a lower bound only."""
+    level = (np.asarray(photo)[mask].max(axis=0) * 0.999).astype(np.float32)
+    return np.where(level > 0, level, np.inf).astype(np.float32)
+
+
 def light_variation(stack: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Per-pixel light variation (H, W): std / mean over the photos of the pixel's luminance (NaN off-mask).
 
@@ -145,8 +152,7 @@ def _prepare(images, maps: MaterialMaps, s: RefineSettings) -> _Photos:
         raise MatcapError(f"photos are {stack.shape[2]}x{stack.shape[1]} but the maps {maps.shape[1]}x{maps.shape[0]}")
     scale = 0.5 / float(stack[:, mask].mean())
     obs = stack * scale
-    sat_level = np.array([o[mask].max(axis=0) * 0.999 for o in obs], np.float32)
-    sat_level = np.where(sat_level > 0, sat_level, np.inf).astype(np.float32)
+    sat_level = np.stack([clipping_level(o, mask) for o in obs])
     variation = light_variation(stack, mask)
     frac_weak, warning = variation_warning(variation, mask, s.loss.variation_threshold)
     weight = np.clip(np.nan_to_num(variation) / s.loss.variation_threshold, 0.1, 1.0).astype(np.float32)
