@@ -31,8 +31,8 @@ def twin(maps, lights):
     """The swatch's twin: ``maps`` with the normal map's x and y negated, ``lights`` turned half a circle."""
     from scenes.lights import DirectionalLight
 
-    turned = [DirectionalLight((-d[0], -d[1], d[2]), light.irradiance)
-              for light in lights for d in [light.direction]]
+    turned = [DirectionalLight((-light.direction[0], -light.direction[1], light.direction[2]), light.irradiance)
+              for light in lights]
     return dataclasses.replace(maps, normal=maps.normal * np.array([-1.0, -1.0, 1.0], np.float32)), turned
 
 
@@ -64,10 +64,8 @@ def main(argv=None) -> int:
         twin_maps, twin_lights = twin(maps, lights)
         twins = flat_check.render_photos(twin_maps, twin_lights, spp=args.spp, seed=1)
         reseeded = flat_check.render_photos(maps, lights, spp=args.spp, seed=2)
-        plane = np.zeros_like(maps.normal)
-        plane[..., 2] = 1.0
         print(f"| {name} | {psnr(photos, twins):.1f} | {psnr(photos, reseeded):.1f} | "
-              f"{flat_check.mean_angular_error(plane, maps.normal):.2f} | "
+              f"{flat_check.flat_baseline({'normal': maps.normal})['normal_deg']:.2f} | "
               f"{flat_check.mean_angular_error(maps.normal, twin_maps.normal):.2f} |", flush=True)
     return 0
 

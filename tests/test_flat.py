@@ -459,6 +459,7 @@ def test_plane_base_color_averages_the_reliefs_shading_out_and_leaves_clipped_ob
     mean over their irradiance is the albedo (at the given level), where any one photo, or a mean that takes the
     clipped corner in, is not."""
     from matcap.refine.flat import plane_base_color
+    from matcap.refine.photos import LUMA
 
     n, albedo = _swatch()
     k = 12
@@ -479,7 +480,7 @@ def test_plane_base_color_averages_the_reliefs_shading_out_and_leaves_clipped_ob
     assert np.percentile(rel_error(base), 99) < 0.02, np.percentile(rel_error(base), 99)
     assert abs((base * level).sum() / (level * level).sum() - 1.0) < 0.05  # the level's own (least squares)
     assert np.percentile(rel_error(photos[5]), 99) > 0.05  # one photo carries the relief's shading
-    luma = np.array([0.2126, 0.7152, 0.0722], np.float32)
+    luma = np.asarray(LUMA, np.float32)
     taken_in = np.mean([p / np.median(p @ luma) for p in photos], 0)
     assert rel_error(taken_in)[:8, :8].max() > 0.04 > rel_error(base)[:8, :8].max()  # the clipped corner
 
