@@ -10,8 +10,9 @@
                                                            # lights: as the check decides, and always fitted
                                                            # (--roughness 0.4,0.9 --dome-light dir|point|env|dir+env,
                                                            # --lamp-distance 3: point lamps' distance)
-    python benchmarks/refine_check.py samples              # a flat wood sample and a bumpy plane, rendered with
-                                                           # Mitsuba under 12 known lights: is the fit trusted?
+    python benchmarks/refine_check.py samples              # a flat wood sample and 6 bumpy planes, rendered with
+                                                           # Mitsuba under 12 known lights: is the fit trusted,
+                                                           # which of a plane's two readings does it choose?
     python benchmarks/refine_check.py detail [--crops docs/images/detail_crops.png]  # a dome carrying a CC0 normal
                                                            # map's fine detail: is it brought back? (crops figure)
     ... --set lights.iters=0 --set priors.normal=0.1      # any RefineSettings field ("group.field")
@@ -24,7 +25,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import resource
 import subprocess
 import sys
 import time
@@ -63,11 +63,11 @@ def _settings(args):
 
 
 def _check(res) -> str:
-    """The fit's check (fit.json ``linear``): residual / inliers / spread / solved fraction, then where the
+    """The fit's check (fit.json ``linear``): residual / inliers / spread / solved fraction / twin ratio, then where the
     Lambertian part failed the near-lamp look (lamp distance in object radii, ambient share, loss against distant
     lamps) and the Principled (glossy) look's ambient share, and kept or fitted."""
     lin = res.report.get("linear") or {}
-    vals = [lin.get(k) for k in ("residual", "inliers", "spread", "solved_fraction")]
+    vals = [lin.get(k) for k in ("residual", "inliers", "spread", "solved_fraction", "twin_ratio")]
     text = " / ".join("-" if v is None else f"{v:.3f}" for v in vals)
 
     def near(radii, share, ratio):
@@ -142,8 +142,8 @@ def uw(args) -> None:
     print(f"UW captures (8-bit taken as linear, all 12 images, --max-side {args.max_side}); normals vs least "
           f"squares with the true lights (mean deg); light directions vs lights.txt (median deg); re-render PSNR; "
           f"held-out: refine on 11, fit only the 12th photo's light with the maps frozen")
-    print("| capture | network | refined | light dir median | light dir max | PSNR dB | held-out PSNR dB | "
-          "refine s | check: residual / inliers / spread / solved (then the near-lamp and Principled looks) |")
+    print("| capture | network | refined | light dir median | light dir max | PSNR dB | held-out PSNR dB | refine s | "
+          "check: residual / inliers / spread / solved / twin ratio (then the near-lamp and Principled looks) |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []
     for name in names:
@@ -254,11 +254,13 @@ def synthetic(args) -> None:
 
 def samples(args) -> None:
     """Material samples filling the frame (no occluding contour): flat wood (CC0 `wood_table_worn` colours, all
-    normals +z) and a plane with smooth random bumps, rendered under 12 directional lights in a 45-degree cone."""
+    normals +z) and planes with smooth random bumps (``--bumps`` height fields), rendered under 12 directional
+    lights in a 45-degree cone. With no outline and lights not given, a bumpy plane and its twin (every tilt
+    mirrored, the lights turned half a turn) give the same photos: each plane's row says which reading the fit chose
+    (the truth's or the twin's, whichever its normals are nearer) and the prior's twin ratio; the last row the mean."""
     from scipy import ndimage
 
     from matcap.estimate import estimate
-    from matcap.evaluation.metrics import angular_error_map
     from matcap.formats import load_maps
     from matcap.refine import refine
     from matcap.refine import synthetic as S
@@ -267,19 +269,27 @@ def samples(args) -> None:
     models = _models(args)
     wood = load_maps(SHARED.parent / "textures" / "wood_table_worn", max_side=256).with_defaults()
     side = 192
-    height = ndimage.gaussian_filter(np.random.default_rng(0).normal(size=(side, side)), 6)
-    gy, gx = np.gradient(height / height.std() * 2.0)
-    n = np.dstack([-gx, gy, np.ones_like(gx)])
     yy, xx = np.mgrid[0:side, 0:side] / side
-    bumpy = MaterialMaps(normal=(n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32),
-                         mask=np.ones((side, side), bool),
-                         base_color=np.dstack([0.5 + 0.2 * np.sin(9 * xx), 0.4 + 0.1 * np.cos(7 * yy),
-                                               0.3 + 0 * xx]).astype(np.float32),
-                         roughness=np.full((side, side), 0.6, np.float32), metallic=np.zeros((side, side), np.float32))
+
+    def bumpy(seed):
+        height = ndimage.gaussian_filter(np.random.default_rng(seed).normal(size=(side, side)), 6)
+        gy, gx = np.gradient(height / height.std() * 2.0)
+        n = np.dstack([-gx, gy, np.ones_like(gx)])
+        return MaterialMaps(normal=(n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32),
+                            mask=np.ones((side, side), bool),
+                            base_color=np.dstack([0.5 + 0.2 * np.sin(9 * xx), 0.4 + 0.1 * np.cos(7 * yy),
+                                                  0.3 + 0 * xx]).astype(np.float32),
+                            roughness=np.full((side, side), 0.6, np.float32),
+                            metallic=np.zeros((side, side), np.float32))
+
     lights = S.known_lights(12, seed=3, max_angle_deg=45.0)
-    print("| sample | flat normals | network | after the fit | light dir median | trusted | reason |")
-    print("|---|---:|---:|---:|---:|---|---|")
-    for name, truth in (("flat wood 256^2", wood), ("bumpy plane 192^2", bumpy)):
+    print("| sample | flat normals | network | after the fit | light dir median | trusted | reading | twin ratio | "
+          "reason |")
+    print("|---|---:|---:|---:|---:|---|---|---:|---|")
+    planes = []
+    samples_ = [("flat wood 256^2", wood)] + [(f"bumpy plane 192^2, heights {k}", bumpy(k))
+                                              for k in range(args.bumps)]
+    for name, truth in samples_:
         photos = S.render_capture(truth, lights, ambient=0.02, spp=16)
         maps = estimate(photos, truth.mask, models=models, seed=0)
         res = refine(photos, maps, _settings(args))
@@ -289,8 +299,17 @@ def samples(args) -> None:
         errs = [_mean_err(x, truth.normal, m) for x in (flat, maps.normal, res.maps.normal)]
         d = np.median([_angle(_towards(e), _towards(l)) for e, l in zip(res.lights, lights)])
         lin = res.report["linear"]
-        print(f"| {name} | {errs[0]:.2f} | {errs[1]:.2f} | {errs[2]:.2f} | {d:.1f} | {lin['trusted']} | "
-              f"{lin.get('reason', '')} |", flush=True)
+        twin = _mean_err(res.maps.normal, truth.normal * np.array([-1.0, -1.0, 1.0], np.float32), m)
+        reading = "-" if name.startswith("flat") else ("truth" if errs[2] <= twin else "twin")
+        ratio = lin.get("twin_ratio")
+        if reading != "-":
+            planes.append(errs + [reading == "truth"])
+        print(f"| {name} | {errs[0]:.2f} | {errs[1]:.2f} | {errs[2]:.2f} | {d:.1f} | {lin['trusted']} | {reading} | "
+              f"{'-' if ratio is None else f'{ratio:.2f}'} | {lin.get('reason', '')} |", flush=True)
+    if planes:
+        a = np.array(planes, float)
+        print(f"| bumpy planes, mean of {len(a)} | {a[:, 0].mean():.2f} | {a[:, 1].mean():.2f} | "
+              f"{a[:, 2].mean():.2f} | | | truth {int(a[:, 3].sum())} of {len(a)} | | |")
 
 
 def dome(args) -> None:
@@ -312,7 +331,7 @@ def dome(args) -> None:
     print(f"Textured dome, {args.side}^2, 16 photos, light {args.dome_light}{lamp}: normals vs the truth (mean deg); "
           "light directions (median deg)")
     print("| roughness | network | fit (check decides) | light dir | kept? | fit, residual check off | light dir | "
-          "check: residual / inliers / spread / solved (then the near-lamp and Principled looks) |")
+          "check: residual / inliers / spread / solved / twin ratio (then the near-lamp and Principled looks) |")
     print("|---:|---:|---:|---:|---|---:|---:|---|")
     for rough in args.roughness:
         truth = S.textured_dome(args.side, wood, roughness=rough)
@@ -516,6 +535,7 @@ def main(argv=None) -> int:
                          "the rig.json of `matcap calibrate uw_chrome`)")
     ap.add_argument("--scenes", type=int, default=8, help="first N scenes (synthetic)")
     ap.add_argument("--side", type=int, default=None, help="image side (timing; dome: default 256)")
+    ap.add_argument("--bumps", type=int, default=6, help="samples: how many bumpy planes (random height fields)")
     ap.add_argument("--roughness", type=lambda v: [float(x) for x in v.split(",")], default=[0.4, 0.9],
                     help="dome roughness values, comma-separated (dome; default 0.4,0.9)")
     ap.add_argument("--dome-light", choices=("dir", "point", "env", "dir+env"), default="dir",

@@ -91,6 +91,9 @@ def surface_bsdf(maps: MaterialMaps, specular: float = DEFAULT_SPECULAR, texture
         "type": "normalmap",
         "normalmap": tex((maps.normal + 1.0) * 0.5),
         "bsdf": principled,
+        # no shadow-terminator darkening: a normal map here stands for a surface that really turns that way (an
+        # object's or a swatch's), which the photos show without it
+        "use_shadowing_function": False,
     }
 
 

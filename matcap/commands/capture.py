@@ -113,7 +113,8 @@ CANDIDATE_TIPS = {"glossy": "a glossy object under a far lamp: try --glossy",
 def fit_notes(result, settings) -> list[str]:
     """The lines `matcap capture` and `matcap refine` print once the fit is done (``result``: a
     :class:`matcap.refine.RefineResult`, ``settings`` those it ran with): its light-variation warning; where the
-    lamps were found near, how near; where the networks' maps were kept, why (the fit's reasons) and what to do:
+    lamps were found near, how near; where the relief's sign was left to a prior that hardly tells (its twin ratio
+    at least ``checks.twin``), so; where the networks' maps were kept, why (the fit's reasons) and what to do:
     give the lights, or add a candidate light model the settings left off where only the Lambertian part of the
     check failed."""
     from matcap.refine.estimated_lights import candidate_models
@@ -124,6 +125,11 @@ def fit_notes(result, settings) -> list[str]:
     if lin.get("check") == "near lamps" and radii is not None:
         lines.append(f"note: the lamps were near the object (median {radii:.1f} object radii away): fitted as point "
                      f"lights, their positions in lights.json")
+    twin = lin.get("twin_ratio")
+    if not result.report.get("kept_network_maps") and twin is not None and twin >= settings.checks.twin:
+        lines.append(f"note: with no outline to go by, bumps and dents give the same photos under lights not given, "
+                     f"and the networks hardly prefer one (twin ratio {twin:.2f}): if the relief looks inverted, give "
+                     f"the lights with --lights FILE or put a mirror ball in the photos (--ball auto)")
     if result.report.get("kept_network_maps"):
         tips = []
         if lin.get("lambertian_only") and settings.model.light != "point":

@@ -8,12 +8,11 @@ space (camera space = the plane's tangent space: x right, y up, z toward the cam
 What Mitsuba does, step by step (``src/bsdfs/normalmap.cpp``, ``principled.cpp``, ``principledhelpers.h``,
 ``include/mitsuba/render/microfacet.h`` / ``fresnel.h``), and this module repeats:
 
-normalmap (``flip_invalid_normals`` and ``use_shadowing_function`` both on by default since 3.7.1)
+normalmap (``flip_invalid_normals`` on, ``use_shadowing_function`` off: relighting turns off the shadow-terminator
+darkening that Mitsuba applies to normal maps by default, since the normals stand for a surface that really turns)
   * flip: where ``wi.z * dot(wi, n) <= 0`` the shading normal becomes ``(-n.x, -n.y, n.z)``; then normalised.
   * the nested BSDF is evaluated in the perturbed frame; the result is zero unless ``wo.z * dot(wo, n) > 0``
     (``wo`` on the same side of the geometric and of the shading normal).
-  * the value is multiplied by the shadow-terminator term of Conty Estevez et al. 2019:
-    ``2 / (1 + sqrt(1 + a2 tan^2(wo)))`` with ``a2 = min(tan^2(n) / 8, 1)``, both angles to the geometric +z.
 
 principled (front side only: ``bsdf = (1 - metallic) * spec_trans = 0``, so nothing reflects from the back)
   * ``eta = 2 / (1 - sqrt(0.08 specular)) - 1`` (1.5 for specular 0.5: F0 = 4 %).
@@ -147,12 +146,6 @@ def principled_eval(
     f_diffuse = (1.0 - 0.5 * fi) * (1.0 - 0.5 * fo) + rr * (fo + fi + fo * fi * (rr - 1.0))
     diffuse = (1.0 - metallic) * co.clamp(min=0.0) * _INV_PI * f_diffuse
 
-    # normalmap's shadow terminator (Conty Estevez et al. 2019), angles to the geometric normal +z
-    n_z2 = (n[..., 2] * n[..., 2]).clamp(min=_TINY)
-    a2 = (0.125 * (n[..., 0] * n[..., 0] + n[..., 1] * n[..., 1]) / n_z2).clamp(max=1.0)
-    tan2_wo = (wo[..., 0] * wo[..., 0] + wo[..., 1] * wo[..., 1]) / (go * go).clamp(min=_TINY)
-    terminator = 2.0 / (1.0 + (1.0 + a2 * tan2_wo).sqrt())
-
-    grey = torch.where(active, spec * f_s * terminator, 0.0)
-    tint = torch.where(active, (spec * f_m + diffuse) * terminator, 0.0)
+    grey = torch.where(active, spec * f_s, 0.0)
+    tint = torch.where(active, spec * f_m + diffuse, 0.0)
     return grey[..., None] + tint[..., None] * base_color

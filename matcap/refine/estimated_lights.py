@@ -51,7 +51,7 @@ def _integrable(fit, obs, mask, network, contour, c_normal, contour_weight, equa
     every pixel of the light-fit copy; unchanged where that is ill-posed."""
     import dataclasses
 
-    from matcap.refine.linear import integrable_ambiguity, solve_normals
+    from matcap.refine.linear import integrable_ambiguity, solve_normals, twin_ratio
 
     rows, cols = np.nonzero(mask)
     lum = _luminance(obs, rows, cols)
@@ -71,8 +71,9 @@ def _integrable(fit, obs, mask, network, contour, c_normal, contour_weight, equa
     b = (fit.normal * fit.albedo[:, None]) @ a.T
     size = np.linalg.norm(b, axis=1)
     irr = np.linalg.norm(s_new, axis=1)
+    ratio = twin_ratio(a, b_img, ok, prior, np.where(on, share, 1.0) * mask)
     return dataclasses.replace(fit, directions=s_new / np.maximum(irr, 1e-12)[:, None], irradiance=irr,
-                               normal=b / np.maximum(size, 1e-12)[:, None], albedo=size)
+                               normal=b / np.maximum(size, 1e-12)[:, None], albedo=size, twin_ratio=ratio)
 
 
 def _distrust(k_count: int, linear, solved_fraction: float | None, s: RefineSettings,
@@ -187,7 +188,8 @@ def _check(ph: _Photos, s: RefineSettings, whole: bool) -> _Check:
               **({"lambertian_only": True} if lambertian_only else {})}
     if linear is not None:
         report.update(contour_pixels=linear.contour_pixels, residual=round(linear.residual, 4),
-                      inliers=round(linear.inliers, 4), spread=round(linear.spread, 5))
+                      inliers=round(linear.inliers, 4), spread=round(linear.spread, 5),
+                      twin_ratio=None if np.isnan(linear.twin_ratio) else round(linear.twin_ratio, 4))
     return _Check(whole, idx, linear, start, report, reason, lambertian_only)
 
 

@@ -38,7 +38,9 @@ class LinearFit:
     inliers: the mean robust weight. Together they say whether distant lights on a Lambertian-like surface explain
     the photos at all (docs/refine.md has the measured values); spread: the third singular value of ``luminance``
     over the first: near 0 when the photos are (nearly) rank 1, as those of a flat sample are, whose one normal
-    cannot tell the lights' directions apart (a flat wood sample: 0.003; the UW captures: 0.07-0.09).
+    cannot tell the lights' directions apart (a flat wood sample: 0.003; the UW captures: 0.07-0.09);
+    twin_ratio: after integrability chose the bas-relief (:func:`twin_ratio`), the prior's misfit of the surface
+    chosen over that of its twin, which explains the photos as well (NaN: not measured).
     """
 
     directions: np.ndarray
@@ -50,6 +52,7 @@ class LinearFit:
     residual: float = float("nan")
     inliers: float = float("nan")
     spread: float = float("nan")
+    twin_ratio: float = float("nan")
 
 
 def contour_normals(mask: np.ndarray, normal: np.ndarray, gate: float = 0.6, nz: float = 0.1,
@@ -302,6 +305,27 @@ def integrable_ambiguity(b_img: np.ndarray, ok: np.ndarray, prior: np.ndarray, p
     if not np.isfinite(a).all() or abs(np.linalg.det(a)) < 1e-12:
         return None
     return _shape_fit(a, seen, pr, q, lights, equal_lights)  # a finite bas-relief of a: finite, invertible
+
+
+def twin_ratio(a: np.ndarray, b_img: np.ndarray, ok: np.ndarray, prior: np.ndarray,
+               prior_weight: np.ndarray) -> float:
+    """How much better the surface ``A b`` fits the prior than its twin ``D A b`` (``D`` = diag(-1, -1, 1)): the
+    prior's weighted mean squared distance of unit normals for the one over the other's.
+
+    Under distant lights and an orthographic camera the twin (every tilt mirrored: bumps become dents) with the
+    lights turned half a turn about the camera axis gives the same photos, and it is a member of the bas-relief
+    family that integrability leaves. Only the prior tells them apart: an occluding contour, whose normals point
+    out of the object, does by far; a sample with no outline has only the networks' tilts. Near 1: the prior
+    cannot tell the two apart. Arguments as :func:`integrable_ambiguity`'s, ``a`` (3, 3) its result."""
+    sel = np.asarray(ok, bool)
+    b = np.asarray(b_img, np.float64)[sel] @ np.asarray(a, np.float64).T
+    n = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
+    pr = np.asarray(prior, np.float64)[sel]
+    q = np.asarray(prior_weight, np.float64)[sel]
+    twin = n * np.array([-1.0, -1.0, 1.0])
+    own = float((q * ((n - pr) ** 2).sum(1)).sum())
+    other = float((q * ((twin - pr) ** 2).sum(1)).sum())
+    return own / max(other, 1e-12)
 
 
 def _gbr(p: np.ndarray) -> np.ndarray:

@@ -166,8 +166,8 @@ def shade_directional(normal, base, rough, metal, directions, irradiance, sh, sp
 
 def shade_fast(normal, base, rough, metal, wo, irradiance, sh, specular: float = 0.5) -> torch.Tensor:
     """:func:`shade` seen along +z for normals facing the camera (n_z > 0, so normalmap never flips them), with
-    everything that depends only on the light (half vector, Fresnel of the dielectric, the light's terms of the bump
-    shadowing) computed at the light's own shape: the same numbers as ``principled_eval``
+    everything that depends only on the light (half vector, Fresnel of the dielectric) computed at the light's own
+    shape: the same numbers as ``principled_eval``
     (tests/test_refine_model.py) at about a third of the work for directional lights.
 
     normal (N, 3) unit; base (N, 3); rough, metal (N,); wo / irradiance (K, N|1, 3); sh (K|1, 9, 3).
@@ -228,8 +228,6 @@ def _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, tange
     cos_d = (h * l).sum(-1).clamp(0.0, 1.0)  # (K, M)
     w_d = B._schlick_weight(cos_d)
     f_die = B._fresnel_dielectric(cos_d, eta)
-    lz = l[..., 2].clamp(min=1e-6)
-    tan2_l = (1.0 - lz * lz) / (lz * lz)  # (K, M)
     # per pixel
     ci = normal[:, 2].clamp(min=1e-6)
     fi = B._schlick_weight(ci)
@@ -238,7 +236,6 @@ def _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, tange
     tan2_i = (1.0 - ci * ci) / (ci * ci)
     sq_i = (1.0 + a2 * tan2_i).sqrt()
     g_i = 2.0 / (1.0 + sq_i)
-    bump_a2 = (0.125 * tan2_i).clamp(0.0, 1.0)
     # per photo and pixel (K, N)
     co_raw = _dots(l, normal)
     ch_raw = _dots(h, normal)
@@ -256,12 +253,10 @@ def _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, tange
     g_o = 2.0 / (1.0 + sq_o)
     gi4 = (g_i / (4.0 * ci))[None]
     spec = d * gi4 * g_o
-    sq_b = (1.0 + bump_a2[None] * tan2_l).sqrt()
-    bump = 2.0 / (1.0 + sq_b)
     valid = (co_raw > 1e-6) & (ch_raw > 0) & (normal[:, 2] > 1e-6)[None] & (l[..., 2] > 0)
     zero = torch.zeros((), dtype=co.dtype, device=co.device)
-    diff_b = torch.where(valid, diff * bump, zero)
-    spec_b = torch.where(valid, spec * bump, zero)
+    diff_b = torch.where(valid, diff, zero)
+    spec_b = torch.where(valid, spec, zero)
     if base is None:  # shade_base_linear: the model's two parts, constant and proportional to the base colour
         basis = sh_basis(normal)
         sh_e = _sh_sum(basis, sh)
@@ -285,7 +280,7 @@ def _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, tange
     metal_w = metal[None, :, None] * w_d[..., None]
     d_base = (diff_b[..., None] + spec_b[..., None] * (metal[None, :, None] - metal_w)) * irr
     d_base = d_base + sh_e * ((1.0 - metal) / math.pi)[None, :, None]
-    diff_nom = torch.where(valid, diff_shape * co * bump / math.pi, zero)  # diffuse without the (1 - m) factor
+    diff_nom = torch.where(valid, diff_shape * co / math.pi, zero)  # diffuse without the (1 - m) factor
     d_fres_m = (base[None] + (1.0 - base)[None] * w_d[..., None]) - f_die[..., None]
     d_metal = (spec_b[..., None] * d_fres_m - diff_nom[..., None] * base[None]) * irr - sh_e * (base / math.pi)[None]
 
@@ -299,8 +294,8 @@ def _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, tange
     dgi_r = -0.25 * g_i[None] * g_i[None] * tan2_i[None] * da2 / sq_i[None]
     dgo_r = -0.25 * g_o * g_o * tan2_o * da2 / sq_o
     dspec_r = dd_r * gi4 * g_o + d * (dgi_r / (4.0 * ci)[None]) * g_o + d * gi4 * dgo_r
-    ddiff_r = torch.where(valid, ddiff_r * bump, zero)
-    dspec_r = torch.where(valid, dspec_r * bump, zero)
+    ddiff_r = torch.where(valid, ddiff_r, zero)
+    dspec_r = torch.where(valid, dspec_r, zero)
     base_irr, fres_irr = base[None] * irr, fres * irr  # (K, N, 3): what the diffuse and specular terms scale
     d_rough = torch.addcmul(ddiff_r[..., None] * base_irr, dspec_r[..., None], fres_irr)
 
@@ -319,13 +314,11 @@ def _shade_terms(normal, base, rough, metal, wo, irradiance, sh, specular, tange
     gi4_ci = (-0.25 * g_i * g_i * a2 / sq_i / (4.0 * ci))[None] * q_i - gi4 / ci[None]  # d gi4 / d ci
     go_co = -0.25 * g_o * g_o * a2[None] * (-2.0 / (co * co * co)) / sq_o  # d g_o / d co
     dd_ch = -4.0 * d * ch * (a2[None] - 1.0) / denom  # d D / d ch
-    inside = ((0.125 * tan2_i > 0.0) & (0.125 * tan2_i < 1.0))[None]
-    bump_ci = -0.25 * bump * bump * tan2_l * torch.where(inside, 0.125 * q_i, zero) / sq_b  # d bump / d ci
-    diff_co = torch.where(valid, (s_fo * shape_fo * co + diff_shape) * dielectric * bump, zero)
-    diff_ci = torch.where(valid, s_fi * shape_fi * co * dielectric * bump + diff * bump_ci, zero)
-    spec_co = torch.where(valid, d * gi4 * go_co * bump, zero)
-    spec_ci = torch.where(valid, d * gi4_ci * g_o * bump + spec * bump_ci, zero)
-    spec_ch = torch.where(valid & (ch_raw > 1e-6), dd_ch * gi4 * g_o * bump, zero)
+    diff_co = torch.where(valid, (s_fo * shape_fo * co + diff_shape) * dielectric, zero)
+    diff_ci = torch.where(valid, s_fi * shape_fi * co * dielectric, zero)
+    spec_co = torch.where(valid, d * gi4 * go_co, zero)
+    spec_ci = torch.where(valid, d * gi4_ci * g_o, zero)
+    spec_ch = torch.where(valid & (ch_raw > 1e-6), dd_ch * gi4 * g_o, zero)
     ddiff = diff_co * dco + diff_ci * dci  # (T, K, N)
     dspec = spec_co * dco + spec_ci * dci + spec_ch * dch
     d_sh = _sh_sum(_sh_basis_d(normal[None], t), sh)  # (T, K|1, N, 3)

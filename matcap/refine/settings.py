@@ -152,6 +152,10 @@ class CheckSettings:
     spread: float = 0.02
     """... and the photos' third singular value must be at least this share of the first (a flat sample's
     photos are nearly rank 1: its one normal cannot tell the lights apart)."""
+    twin: float = 0.25
+    """Not a gate: where the prior's misfit of the surface chosen is at least this share of its twin's (every
+    tilt mirrored, which explains the photos as well; :func:`matcap.refine.linear.twin_ratio`), a note says
+    that the photos cannot tell its bumps from its dents."""
 
 
 @dataclass
