@@ -339,6 +339,11 @@ def dome(args) -> None:
             photos = S.render_capture(truth, lights, ambient=0.02, spp=32)
         else:
             photos = _env_photos(truth, lights if args.dome_light == "dir+env" else None, args.env_fixed)
+        if args.lamp_off:  # a photo of the room's light alone, subtracted as `matcap capture --lamp-off` does
+            from matcap.photos import subtract_lamp_off
+
+            off = _env_photos(truth, [], True)[0]
+            photos = [subtract_lamp_off(p, off) for p in photos]
         maps = estimate(photos, truth.mask, models=models, seed=0)
         s = _settings(args)
         checked = refine(photos, maps, s)
@@ -444,7 +449,7 @@ def _towards(light) -> np.ndarray:
 def _env_photos(truth, lights=None, fixed: bool = False):
     """16 photos of ``truth`` under Blender's studio, interior, courtyard and forest maps in turn, turned by 22.5
     degrees from photo to photo (``fixed``: the studio map alone, never turned: a room's light); with ``lights``,
-    each photo's directional light plus the map at 0.3."""
+    each photo's directional light plus the map at 0.3 (``lights`` empty: the map at 0.3 alone, the lamp off)."""
     from matcap.refine import synthetic as S
     from matcap.relight import load_envmap
     from renderers.relight import render
@@ -458,7 +463,7 @@ def _env_photos(truth, lights=None, fixed: bool = False):
     for i in range(16):
         e = EnvironmentLight(source=names[i % len(names)], rotation_deg=0.0 if fixed else 22.5 * i,
                              scale=1.0 if lights is None else 0.3)
-        img = render(full, [e] if lights is None else [lights[i], e], env, spp=32, seed=i)
+        img = render(full, [e] if lights is None else [*lights[i:i + 1], e], env, spp=32, seed=i)
         photos.append(np.where(truth.mask[..., None], img, 0.0).astype(np.float32))
     return photos
 
@@ -536,6 +541,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", type=int, default=8, help="first N scenes (synthetic)")
     ap.add_argument("--side", type=int, default=None, help="image side (timing; dome: default 256)")
     ap.add_argument("--bumps", type=int, default=6, help="samples: how many bumpy planes (random height fields)")
+    ap.add_argument("--lamp-off", action="store_true",
+                    help="dome with --env-fixed: a photo of the room's light alone subtracted from every photo")
     ap.add_argument("--roughness", type=lambda v: [float(x) for x in v.split(",")], default=[0.4, 0.9],
                     help="dome roughness values, comma-separated (dome; default 0.4,0.9)")
     ap.add_argument("--dome-light", choices=("dir", "point", "env", "dir+env"), default="dir",

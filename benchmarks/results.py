@@ -535,8 +535,12 @@ def refine_dome_room(ctx: Ctx):
             "--roughness", "0.4,0.9", "--threads", "1"]
     fixed = ctx.run(base + ["--env-fixed"])
     turning = ctx.run(base)
+    lamp_off = ctx.run(base + ["--env-fixed", "--lamp-off"])
     return ("; ".join(_dome_cells(fixed, False)),
-            "the map turning between photos instead: " + "; ".join(_dome_cells(turning, False)), [fixed, turning])
+            "the map turning between photos instead: " + "; ".join(_dome_cells(turning, False))
+            + "; the fixed map with a lamp-off photo subtracted (`--lamp-off`): "
+            + "; ".join(_dome_cells(lamp_off, False)),
+            [fixed, turning, lamp_off])
 
 
 def refine_detail(ctx: Ctx):

@@ -78,6 +78,7 @@ def capture(
     lights: str | os.PathLike | None = None,
     ball: str | os.PathLike | None = None,
     flat: bool | None = None,
+    lamp_off: str | os.PathLike | None = None,
     on_fit=None,
     **estimate_kwargs,
 ) -> tuple[MaterialMaps, Path]:
@@ -95,6 +96,8 @@ def capture(
     ``lights``: a light file (:mod:`matcap.lightfiles`) whose lights the fit holds instead of estimating them;
     ``ball``: "auto" or a mask file of a mirror ball inside the photos: the lights come from its highlights
     (:mod:`matcap.calibrate`), the ball is kept out of the object's mask and ``calibration.png`` is written.
+    ``lamp_off``: a photo taken with the lamp off, outside ``folder``, subtracted from every photo (the light of
+    the room that stays on: :func:`matcap.photos.load_capture`); recorded in capture.json ``lamp_off_file``.
     ``flat``: the photos show a flat sample facing the camera (True), not (False), or decide from the networks'
     normals (None: :func:`matcap.refine.flat.check_flat`); a flat sample's lamps, unless given, are found from
     their falloff over the plane (recorded in capture.json as ``flat``).
@@ -149,19 +152,21 @@ def capture(
     # --max-side and --max-images act while reading: photos are shrunk one by one and unused ones never decoded
     calibration = ball_region = None
     if ball is not None:
-        known, calibration, ball_region = ball_lights(folder, ball, linear, contrast, max_side, max_images, seed)
+        known, calibration, ball_region = ball_lights(folder, ball, linear, contrast, max_side, max_images, seed,
+                                                      lamp_off)
     colour_decision, cap, maps, lamps = None, None, None, None
     if refine and linear is None:  # neither --linear nor --srgb: let the fit decide for 8-bit photos
         t0 = time.perf_counter()
         linear, colour_decision, cap, maps, lamps = decide_colour(folder, mask, max_side, refine_settings,
                                                                   dict(estimate_kwargs, max_images=max_images),
-                                                                  known, exclude=ball_region, flat=flat)
+                                                                  known, exclude=ball_region, flat=flat,
+                                                                  lamp_off=lamp_off)
         if colour_decision is not None:
             colour_decision["seconds"] = round(time.perf_counter() - t0, 3)
     linear = bool(linear)  # None without the fit: sRGB, the default
     if cap is None:
-        cap = without_region(load_capture(folder, mask=mask, linear=linear, max_side=max_side,
-                                           max_images=max_images, seed=seed, contrast=contrast), ball_region)
+        cap = without_region(load_capture(folder, mask=mask, linear=linear, max_side=max_side, max_images=max_images,
+                                          seed=seed, contrast=contrast, lamp_off=lamp_off), ball_region)
     original_wh = list(cap.photo_size_wh)
     if flat:
         from matcap.refine.flat import check_plane_mask
@@ -194,6 +199,7 @@ def capture(
             "input_folder": str(Path(folder).resolve()),
             "inputs": used,
             "mask_file": cap.mask_file,
+            "lamp_off_file": None if lamp_off is None else str(Path(lamp_off).resolve()),
             "skipped_files": cap.skipped,
             "colour_handling": cap.colour,
             "decoding": decoding_record(cap, linear, "fit" if colour_decision else "flag" if linear_given else
@@ -242,7 +248,7 @@ def without_region(cap: Capture, region: np.ndarray | None) -> Capture:
 
 
 def ball_lights(folder, ball: str | os.PathLike, linear: bool | None, contrast: float, max_side: int | None,
-                max_images: int | None, seed: int):
+                max_images: int | None, seed: int, lamp_off: str | os.PathLike | None = None):
     """(KnownLights of the photos read, :class:`matcap.calibrate.Calibration`, the ball's region (H, W) bool) from
     a mirror ball inside the capture's own photos (``ball``: "auto", or a mask file of the ball). The highlights
     are found on the photos as decoded (8-bit as linear unless --srgb: the decoding moves no highlight); the
@@ -251,7 +257,7 @@ def ball_lights(folder, ball: str | os.PathLike, linear: bool | None, contrast: 
     from matcap.lightfiles import KnownLights
 
     cap = load_capture(folder, linear=linear is not False, max_side=max_side, max_images=max_images, seed=seed,
-                       contrast=contrast)
+                       contrast=contrast, lamp_off=lamp_off)
     ball_mask = None
     if str(ball) != "auto":
         full = cap.photo_size_wh[::-1]
@@ -290,7 +296,7 @@ class FoundLamps:
 
 
 def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None, pixels: int = 6000,
-                  exclude: np.ndarray | None = None, flat: bool | None = None):
+                  exclude: np.ndarray | None = None, flat: bool | None = None, lamp_off=None):
     """(linear?, record, capture, maps, lamps) for 8-bit photos given neither --linear nor --srgb: run the networks
     on the sRGB-decoded photos, fit both decodings (a quick fit on ``pixels`` random object pixels) and keep the one
     whose re-render is closer to the photos *as stored* (RMS in 8-bit units / 255). ``capture`` is the photos read
@@ -307,7 +313,8 @@ def decide_colour(folder, mask, max_side, settings, estimate_kwargs, known=None,
     kwargs = dict(estimate_kwargs)  # the networks' stages show their own progress, as in any capture
     max_images = kwargs.pop("max_images", None)
     caps = {lin: without_region(load_capture(folder, mask=mask, linear=lin, max_side=max_side, max_images=max_images,
-                                             seed=kwargs.get("seed", 0)), exclude) for lin in (False, True)}
+                                             seed=kwargs.get("seed", 0), lamp_off=lamp_off), exclude)
+            for lin in (False, True)}
     if "8-bit" not in caps[False].colour:
         return False, None, caps[False], None, None
     maps = network_maps(caps[False].images, caps[False].mask, flat, True, **kwargs)

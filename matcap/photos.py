@@ -185,7 +185,7 @@ def read_lights_for(path: str | os.PathLike, folder: str | os.PathLike, picked: 
 
 def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = None, linear: bool = False,
                  max_side: int | None = None, max_images: int | None = None, seed: int = 0,
-                 contrast: float = 1.0) -> Capture:
+                 contrast: float = 1.0, lamp_off: str | os.PathLike | None = None) -> Capture:
     """Read the photos of ``folder``; ``mask.*`` / ``*.mask.*`` is the mask unless ``mask`` names one.
 
     8-bit images are decoded from sRGB unless ``linear``, after undoing a camera tone curve of ``contrast`` > 1
@@ -194,6 +194,8 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
     side is at most that; ``max_images``: only that many photos, drawn with ``seed`` (:func:`pick_images`), are
     read. Sizes come from the files' headers first, so mixed sizes and a capture too large for the memory
     (:func:`check_memory`) are refused before anything is decoded.
+    ``lamp_off``: a photo taken with the lamp off (the room's own light), outside ``folder``: decoded as the photos
+    are and subtracted from each of them (:func:`subtract_lamp_off`).
     Raises :class:`MatcapError` for no/one image, mixed sizes, unreadable files, NaN/Inf, a mask of another size.
     """
     folder = Path(folder)
@@ -228,6 +230,19 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
             arr = shrink_image(arr, (work_hw[1], work_hw[0]))
         images.append(arr)
     size = imageio.check_same_size(sizes)
+    if lamp_off is not None:
+        off = Path(lamp_off)
+        if off.resolve().parent == folder.resolve():
+            raise MatcapError(f"{off}: the lamp-off photo is in the photos' folder, where it would be read as a photo; "
+                              f"move it out")
+        stored = imageio.read_image(off)
+        if stored.pixels.shape[:2] != size:
+            raise MatcapError(f"{off}: the lamp-off photo is {stored.pixels.shape[1]}x{stored.pixels.shape[0]}, the "
+                              f"photos {size[1]}x{size[0]}")
+        dark, _ = imageio.to_linear_float(stored, decode_srgb_8bit=not linear, contrast=contrast)
+        if dark.shape[:2] != images[0].shape[:2]:
+            dark = shrink_image(dark, (images[0].shape[1], images[0].shape[0]))
+        images = [subtract_lamp_off(im, dark) for im in images]
     mask_path = Path(mask) if mask is not None else found_mask
     mask_arr = read_mask(mask_path, size) if mask_path is not None else None
     if mask_arr is not None and max_side is not None and images[0].shape[:2] != size:
@@ -247,6 +262,17 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
     colour = ", ".join(sorted(words[k] for k in kinds))
     return Capture(images, [p.name for p in photos], mask_arr, str(mask_path) if mask_path else None, colour, skipped,
                    photo_size_wh=(size[1], size[0]), picked=[int(i) for i in picked])
+
+
+def subtract_lamp_off(photo: np.ndarray, lamp_off: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float32: ``photo`` minus ``lamp_off`` (both (H, W, 3) linear), clipped at 0: the lamp's light alone.
+    An observation that clips in ``photo`` (per channel, at 0.999 of its maximum) stays at the result's maximum, so
+    that the fit still finds it clipped (:func:`matcap.refine.photos.clipping_level`)."""
+    photo = np.asarray(photo, np.float32)
+    out = np.maximum(photo - np.asarray(lamp_off, np.float32), 0.0)
+    top = photo.reshape(-1, 3).max(axis=0)
+    clipped = (photo >= 0.999 * top) & (top > 0)
+    return np.where(clipped, out.reshape(-1, 3).max(axis=0), out).astype(np.float32)
 
 
 def check_max_side(max_side: int) -> None:

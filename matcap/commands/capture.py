@@ -63,6 +63,9 @@ def register(sub) -> None:
                    help="a mirror ball (chrome sphere) is in the photos: take the lights from its highlights, found "
                         "by itself ('auto') or inside a mask image of the ball; the ball is kept out of the object's "
                         "mask and calibration.png shows what was found")
+    p.add_argument("--lamp-off", metavar="PHOTO",
+                   help="a photo taken with the lamp off (the light of the room alone), outside the photos' folder: "
+                        "subtracted from every photo, so that a room light that stays on does not lean the lamps")
     p.add_argument("--flat", action=argparse.BooleanOptionalAction, default=None,
                    help="the photos show a flat sample (a material swatch facing the camera): fit it as a plane "
                         "whose lamps are found from the falloff of their light over it, unless --lights / --ball "
@@ -195,7 +198,8 @@ def run(args) -> int:
         weights=args.weights, max_images=args.max_images, seed=args.seed, device=args.device,
         pixel_samples=args.pixel_samples, bf16=args.bf16, views=args.views, progress=not args.quiet,
         constants=constants, max_side=args.max_side, relight=relight, export=export, refine=do_refine,
-        refine_settings=settings, lights=args.lights, ball=args.ball, flat=args.flat, on_fit=print_fit_notes,
+        refine_settings=settings, lights=args.lights, ball=args.ball, flat=args.flat, lamp_off=args.lamp_off,
+        on_fit=print_fit_notes,
     )
     flat = maps.meta.get("flat") or {}
     lamps = (maps.meta.get("refine") or {}).get("flat_lamps")

@@ -22,6 +22,8 @@ def register(sub) -> None:
     p.add_argument("--tone-curve", type=float, metavar="C",
                    help="undo a camera tone curve of contrast C (1-4; 1: none) before decoding 8-bit sRGB photos "
                         "(default: as the result did)")
+    p.add_argument("--lamp-off", metavar="PHOTO",
+                   help="a photo taken with the lamp off, subtracted from every photo (default: as the result did)")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     add_fit_options(p)
@@ -63,7 +65,8 @@ def run(args) -> int:
         contrast = 1.0 if (args.linear or args.srgb) else meta.get("tone_curve_contrast", 1.0)
     if linear and contrast != 1.0:
         raise MatcapError("--tone-curve undoes a camera's curve over sRGB; it contradicts --linear")
-    cap = load_capture(args.photos, mask=args.mask, linear=linear, contrast=contrast)
+    lamp_off = args.lamp_off or meta.get("lamp_off_file")
+    cap = load_capture(args.photos, mask=args.mask, linear=linear, contrast=contrast, lamp_off=lamp_off)
     names = meta.get("inputs") or cap.files
     missing = [n for n in names if n not in cap.files]
     if missing:
@@ -82,6 +85,7 @@ def run(args) -> int:
                                   progress=not args.quiet, lights=known, on_fit=print_fit_notes)
     refined.meta["tool"] = "matcap refine"
     refined.meta["colour_handling"] = cap.colour  # as decoded here (--linear / --srgb / --tone-curve may differ)
+    refined.meta["lamp_off_file"] = None if lamp_off is None else str(Path(lamp_off).resolve())
     refined.meta.pop("tone_curve_contrast", None)
     if contrast != 1.0 and "8-bit" in cap.colour:
         refined.meta["tone_curve_contrast"] = contrast
