@@ -342,7 +342,7 @@ def dome(args) -> None:
         if args.lamp_off:  # a photo of the room's light alone, subtracted as `matcap capture --lamp-off` does
             from matcap.photos import subtract_lamp_off
 
-            off = _env_photos(truth, [], True)[0]
+            (off,) = _env_photos(truth, [], True, count=1)
             photos = [subtract_lamp_off(p, off) for p in photos]
         maps = estimate(photos, truth.mask, models=models, seed=0)
         s = _settings(args)
@@ -446,10 +446,11 @@ def _towards(light) -> np.ndarray:
     return np.asarray(getattr(light, "direction", None) or light.position, float)
 
 
-def _env_photos(truth, lights=None, fixed: bool = False):
+def _env_photos(truth, lights=None, fixed: bool = False, count: int = 16):
     """16 photos of ``truth`` under Blender's studio, interior, courtyard and forest maps in turn, turned by 22.5
     degrees from photo to photo (``fixed``: the studio map alone, never turned: a room's light); with ``lights``,
-    each photo's directional light plus the map at 0.3 (``lights`` empty: the map at 0.3 alone, the lamp off)."""
+    each photo's directional light plus the map at 0.3 (``lights`` empty: the map at 0.3 alone, the lamp off);
+    the first ``count`` of them."""
     from matcap.refine import synthetic as S
     from matcap.relight import load_envmap
     from renderers.relight import render
@@ -460,7 +461,7 @@ def _env_photos(truth, lights=None, fixed: bool = False):
     env = {n: load_envmap(SHARED.parent / "envmaps" / f"{n}.exr") for n in names}  # only the maps it shows
     full = S.extend_maps(truth)
     photos = []
-    for i in range(16):
+    for i in range(count):
         e = EnvironmentLight(source=names[i % len(names)], rotation_deg=0.0 if fixed else 22.5 * i,
                              scale=1.0 if lights is None else 0.3)
         img = render(full, [e] if lights is None else [*lights[i:i + 1], e], env, spp=32, seed=i)

@@ -199,7 +199,7 @@ def capture(
             "input_folder": str(Path(folder).resolve()),
             "inputs": used,
             "mask_file": cap.mask_file,
-            "lamp_off_file": None if lamp_off is None else str(Path(lamp_off).resolve()),
+            "lamp_off_file": cap.lamp_off_file,
             "skipped_files": cap.skipped,
             "colour_handling": cap.colour,
             "decoding": decoding_record(cap, linear, "fit" if colour_decision else "flag" if linear_given else

@@ -38,6 +38,7 @@ class Capture:
     mask_file: str | None = None
     colour: str = "linear"
     skipped: list[str] = field(default_factory=list)
+    lamp_off_file: str | None = None  # the lamp-off photo subtracted from every photo (absolute path), or None
     photo_size_wh: tuple[int, int] | None = None  # (W, H) of the photos as stored (before --max-side)
     picked: list[int] = field(default_factory=list)  # indices of ``files`` among the folder's photos (--max-images)
 
@@ -261,17 +262,19 @@ def load_capture(folder: str | os.PathLike, mask: str | os.PathLike | None = Non
     }
     colour = ", ".join(sorted(words[k] for k in kinds))
     return Capture(images, [p.name for p in photos], mask_arr, str(mask_path) if mask_path else None, colour, skipped,
-                   photo_size_wh=(size[1], size[0]), picked=[int(i) for i in picked])
+                   None if lamp_off is None else str(Path(lamp_off).resolve()), photo_size_wh=(size[1], size[0]),
+                   picked=[int(i) for i in picked])
 
 
 def subtract_lamp_off(photo: np.ndarray, lamp_off: np.ndarray) -> np.ndarray:
     """(H, W, 3) float32: ``photo`` minus ``lamp_off`` (both (H, W, 3) linear), clipped at 0: the lamp's light alone.
     An observation that clips in ``photo`` (per channel, at 0.999 of its maximum) stays at the result's maximum, so
     that the fit still finds it clipped (:func:`matcap.refine.photos.clipping_level`)."""
+    from matcap.refine.photos import clipping_level
+
     photo = np.asarray(photo, np.float32)
     out = np.maximum(photo - np.asarray(lamp_off, np.float32), 0.0)
-    top = photo.reshape(-1, 3).max(axis=0)
-    clipped = (photo >= 0.999 * top) & (top > 0)
+    clipped = photo >= clipping_level(photo, np.ones(photo.shape[:2], bool))
     return np.where(clipped, out.reshape(-1, 3).max(axis=0), out).astype(np.float32)
 
 

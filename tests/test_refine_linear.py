@@ -212,10 +212,6 @@ def test_a_flat_sample_keeps_the_maps():
     assert res.report["kept_network_maps"] and np.array_equal(res.maps.normal, n)
 
 
-def _angle_deg(a, b):
-    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1.0, 1.0)))
-
-
 def test_a_bumpy_plane_and_its_twin_are_told_apart_by_the_prior_alone():
     """No outline, lights not given: the plane and its twin (every tilt mirrored, bumps become dents) give the same
     photos, so the reading the fit returns is the prior's. Given the truth, it returns the truth; given the twin, the
@@ -228,9 +224,9 @@ def test_a_bumpy_plane_and_its_twin_are_told_apart_by_the_prior_alone():
         lin = res.report["linear"]
         assert lin["trusted"] and lin["twin_ratio"] < 0.05, lin
         out[name] = res
-    assert _angle_deg(out["truth"].maps.normal, n).mean() < 4.0
-    assert _angle_deg(out["twin"].maps.normal, twin).mean() < 4.0
-    assert _angle_deg(out["twin"].maps.normal, n).mean() > 10.0
+    assert _angles(out["truth"].maps.normal, n).mean() < 4.0
+    assert _angles(out["twin"].maps.normal, twin).mean() < 4.0
+    assert _angles(out["twin"].maps.normal, n).mean() > 10.0
     assert abs(out["truth"].report["psnr_db_mean"] - out["twin"].report["psnr_db_mean"]) < 1.0
 
 

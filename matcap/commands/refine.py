@@ -85,7 +85,7 @@ def run(args) -> int:
                                   progress=not args.quiet, lights=known, on_fit=print_fit_notes)
     refined.meta["tool"] = "matcap refine"
     refined.meta["colour_handling"] = cap.colour  # as decoded here (--linear / --srgb / --tone-curve may differ)
-    refined.meta["lamp_off_file"] = None if lamp_off is None else str(Path(lamp_off).resolve())
+    refined.meta["lamp_off_file"] = cap.lamp_off_file
     refined.meta.pop("tone_curve_contrast", None)
     if contrast != 1.0 and "8-bit" in cap.colour:
         refined.meta["tone_curve_contrast"] = contrast

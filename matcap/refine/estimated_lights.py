@@ -64,14 +64,15 @@ def _integrable(fit, obs, mask, network, contour, c_normal, contour_weight, equa
     on = contour & mask
     prior = np.where(on[..., None], c_normal, network)
     share = contour_weight * (mask & ~on).sum() / max(int(on.sum()), 1)
-    a = integrable_ambiguity(b_img, ok, prior, np.where(on, share, 1.0) * mask, s_lum, equal_lights)
+    prior_weight = np.where(on, share, 1.0) * mask
+    a = integrable_ambiguity(b_img, ok, prior, prior_weight, s_lum, equal_lights)
     if a is None or not np.isfinite(a).all() or abs(np.linalg.det(a)) < 1e-12:  # nothing to choose it by
         return fit
     s_new = s_lum @ np.linalg.inv(a)
     b = (fit.normal * fit.albedo[:, None]) @ a.T
     size = np.linalg.norm(b, axis=1)
     irr = np.linalg.norm(s_new, axis=1)
-    ratio = twin_ratio(a, b_img, ok, prior, np.where(on, share, 1.0) * mask)
+    ratio = twin_ratio(a, b_img, ok, prior, prior_weight)
     return dataclasses.replace(fit, directions=s_new / np.maximum(irr, 1e-12)[:, None], irradiance=irr,
                                normal=b / np.maximum(size, 1e-12)[:, None], albedo=size, twin_ratio=ratio)
 
