@@ -3,9 +3,10 @@
 A plane's mean normal is the camera axis, so a lamp a few sample widths away shows itself in the photos' falloff:
 photo k's irradiance at plane point x is ``I_k * h_k / |p_k - x|^3`` (a lamp at ``p_k``, ``h_k`` its height above
 the plane), and the ratio of two photos at one pixel cancels the albedo. :func:`plane_lamps` fits every lamp's
-position and relative intensity to those ratios (log domain, robust, the per-pixel albedo profiled out), then to
-the photos under the fit's own Principled BSDF where the plane explains them that way (its highlights place the
-lamps). From far away the falloff is flat and tells nothing (:attr:`PlaneLamps.near` is false): the photos of one
+position and relative intensity to those ratios (log domain, robust, the per-pixel albedo profiled out; a coloured
+pixel's highlights taken out by its channels' spread, :func:`_diffuse_channel`), then to the photos under the fit's
+own Principled BSDF where the plane explains them that way (its highlights place the lamps). From far away the
+falloff is flat and tells nothing (:attr:`PlaneLamps.near` is false): the photos of one
 plane under distant lights cannot tell those lights apart, so :func:`flat_lights` returns none and the lights must be
 given (a light file, a mirror ball).
 
@@ -115,7 +116,8 @@ class PlaneLamps:
     residual_distant: the same with every lamp taken as distant (a directional light): where it is not larger,
     the falloff did not place the lamps (:attr:`near`); residual_plane: the same (on the same copy) of the plane
     under the Principled BSDF (step 3 of :func:`plane_lamps`; NaN where near lamps were not found), whose lamps these
-    are where :attr:`plane_placed`; roughness: that plane's one roughness."""
+    are where :attr:`plane_placed`; residual_bright: step 2's lamps' residual on the photos' brightest channel, as
+    step 3 sees them (``residual`` is on their diffuse light); roughness: that plane's one roughness."""
 
     positions: np.ndarray
     directions: np.ndarray
@@ -127,6 +129,7 @@ class PlaneLamps:
     residual_distant: float
     residual_plane: float
     roughness: float
+    residual_bright: float
 
     @property
     def near(self) -> bool:
@@ -136,8 +139,9 @@ class PlaneLamps:
 
     @property
     def plane_placed(self) -> bool:
-        """Whether the Principled plane placed the lamps (its residual at most :data:`PLANE_GAIN` of step 2's)."""
-        return _plane_better(self.residual_plane, self.residual)
+        """Whether the Principled plane placed the lamps (its residual at most :data:`PLANE_GAIN` of step 2's lamps',
+        both on the brightest channel)."""
+        return _plane_better(self.residual_plane, self.residual_bright)
 
     @property
     def distance_widths(self) -> np.ndarray:
@@ -184,6 +188,29 @@ def _dominant_channel(images) -> np.ndarray:
     stack = np.stack([np.asarray(im, np.float32) for im in images])
     pick = stack.mean(0).argmax(-1)
     return np.take_along_axis(stack, pick[None, ..., None], -1)[..., 0]
+
+
+#: :func:`_diffuse_channel` takes a pixel's highlights out where its mean colour's saturation, (max - min) / max over
+#: its channels, is at least this; a paler pixel keeps too little of its diffuse light in the spread.
+DIFFUSE_SATURATION = 0.3
+
+
+def _diffuse_channel(images, mask: np.ndarray) -> np.ndarray:
+    """(K, H, W) each pixel's diffuse light alone where its colour allows, for placing the lamps.
+
+    images: K (H, W, 3) linear RGB photos; mask: (H, W) bool, the sample. A dielectric's highlight has the lamp's
+    colour (white after white balance) and adds alike to every channel, so the spread of a pixel's channels,
+    max - min, holds its diffuse part alone (the shading times its base colour's own spread) and is Lambertian in
+    every photo. Used where the pixel's
+    mean colour over the photos has a saturation of at least :data:`DIFFUSE_SATURATION`; elsewhere the brightest
+    channel (:func:`_dominant_channel`). An observation clipped in any channel
+    (:func:`matcap.refine.photos.clipping_level`) is 0 there, which :func:`_log_obs` leaves out."""
+    stack = np.stack([np.asarray(im, np.float32) for im in images])
+    mean = stack.mean(0)
+    saturation = (mean.max(-1) - mean.min(-1)) / np.maximum(mean.max(-1), 1e-12)
+    clipped = np.stack([(im >= clipping_level(im, mask)).any(-1) for im in stack])
+    spread = np.where(clipped, 0.0, stack.max(-1) - stack.min(-1))
+    return np.where((saturation >= DIFFUSE_SATURATION)[None], spread, _dominant_channel(images)).astype(np.float32)
 
 
 def _small(lum: np.ndarray, mask: np.ndarray, side: int):
@@ -511,7 +538,9 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
                 principled_roughness: tuple[float, ...] = (0.15, 0.5), on_stage=None) -> PlaneLamps:
     """The lamp of every photo of a flat sample, from the falloff of its light over the plane.
 
-    images: K (H, W, 3) linear RGB photos (any common scale); mask: (H, W) bool, the sample. Fitted on a copy whose
+    images: K (H, W, 3) linear RGB photos (any common scale); mask: (H, W) bool, the sample. Steps 1 and 2 see each
+    pixel's diffuse light (:func:`_diffuse_channel`: a coloured pixel's channel spread, free of its highlights;
+    a pale one's brightest channel), step 3 the brightest channel, highlights and all. Fitted on a copy whose
     longer side is ``side`` pixels, in two stages, each by Levenberg-Marquardt per lamp with a Cauchy loss of scale
     ``cauchy`` (log units: highlights and cast shadows weigh little); clipped and black observations left out.
 
@@ -533,7 +562,8 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
        sample widths, each at every roughness of ``principled_roughness`` (:func:`_principled_lamps`); the start
        that ends with the lowest loss gives the positions where the plane explains the photos about as closely as
        step 2's free normals do (median absolute relative residual on step 2's copy at most :data:`PLANE_GAIN`
-       times step 2's); elsewhere (a sample whose tilts shade it visibly) step 2's lamps stay.
+       times that of step 2's lamps, both on the brightest channel); elsewhere (a sample whose tilts shade it
+       visibly) step 2's lamps stay.
 
     ``on_stage()``, where given, is called as each of the three steps ends (progress).
     """
@@ -549,7 +579,7 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
     if lum.shape[1:] != mask.shape:
         raise MatcapError(f"the mask is {mask.shape[1]}x{mask.shape[0]} but the photos {lum.shape[2]}x{lum.shape[1]}")
     h, w = mask.shape
-    small, keep = _small(lum, mask, side)
+    small, keep = _small(_diffuse_channel(images, mask), mask, side)
     if keep.sum() < 16:
         raise MatcapError("the flat sample's mask is too small to find its lamps (fewer than 16 pixels at "
                           f"{small.shape[2]}x{small.shape[1]})")
@@ -613,6 +643,7 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
     # ---- 2. near-light photometric stereo: the lamps with every pixel's albedo times normal solved for them
     lamp, resid, _ = _varpro(torch, lamp, vectors, y_np, w_np, cauchy, 4 * steps)
     _, resid_distant, _ = _varpro(torch, lamp, lambda t: vectors(t, distant=True), y_np, w_np, cauchy, 4 * steps)
+    resid_bright = _varpro(torch, lamp, vectors, *_log_obs(*_small(lum, mask, side)), cauchy, 0)[1]  # as step 3 sees
     stage_done()
     # ---- 3. the plane under the Principled BSDF (where the falloff placed the lamps at all)
     rough, resid_plane = math.nan, math.nan
@@ -620,7 +651,7 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
         plane, rough, resid_plane = _principled_lamps(torch, lum, mask, lamp, centre, width, principled_side,
                                                       principled_widths, principled_roughness, cauchy,
                                                       2 * steps, side)
-        if _plane_better(resid_plane, resid):
+        if _plane_better(resid_plane, resid_bright):
             lamp = plane
     stage_done()
     positions = torch.cat([lamp[:, :2], lamp[:, 2:3].exp()], 1)
@@ -629,7 +660,7 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
     irr = torch.exp(lamp[:, 3]) / dist ** 2  # at the centre, on a surface facing the lamp (relative)
     irr = irr / irr.mean()
     return PlaneLamps(positions.numpy(), (rel / dist[:, None]).numpy(), dist.numpy(), irr.numpy(), centre.numpy(),
-                      width, resid, resid_distant, resid_plane, rough)
+                      width, resid, resid_distant, resid_plane, rough, resid_bright)
 
 
 
@@ -681,6 +712,7 @@ def flat_lights(images, mask: np.ndarray, on_stage=None) -> FlatLights:
                    "distance_widths": [round(float(v), 3) for v in widths], "sample_width": round(lamps.width, 5),
                    "placed_by": "the plane under the Principled BSDF" if lamps.plane_placed else
                    "near-light photometric stereo", "residual_plane": round(lamps.residual_plane, 5),
+                   "residual_bright_channel": round(lamps.residual_bright, 5),
                    "plane_roughness": round(lamps.roughness, 3)})
     known = KnownLights(lamps.directions.astype(np.float64), None, "estimated", "", "order",
                         lamps.positions.astype(np.float64))
