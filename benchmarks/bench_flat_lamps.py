@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     from matcap.refine import flat as new
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sets", default="sofa_03,bell_pepper,painted_wooden_stool", help="texture sets, comma-separated")
+    ap.add_argument("--sets", default="sofa_03,bell_pepper,painted_wooden_stool", help="texture sets, comma-separated, or 'all'")
     ap.add_argument("--size", type=int, default=128, help="swatch side in pixels (default 128)")
     ap.add_argument("--old", default=None, help="git revision to compare with")
     ap.add_argument("--repeats", type=int, default=1, help="timings per code and swatch (default 1)")
@@ -58,7 +58,7 @@ def main(argv=None) -> int:
     print("| swatch | code | seconds | position error median / max | angle median / max (deg) | lamps placed "
           "| placed by |")
     print("|---|---|---:|---|---|---|---|")
-    for name in args.sets.split(","):
+    for name in fc.texture_sets() if args.sets == "all" else args.sets.split(","):
         maps, _ = fc.load_sample(fc.TEXTURES / name, args.size)
         lights = fc.make_lights("near", 16, 0)  # as flat_check.py draws them
         photos = fc.render_photos(maps, lights)
