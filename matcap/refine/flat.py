@@ -208,9 +208,11 @@ def _diffuse_channel(images, mask: np.ndarray) -> np.ndarray:
     stack = np.stack([np.asarray(im, np.float32) for im in images])
     mean = stack.mean(0)
     saturation = (mean.max(-1) - mean.min(-1)) / np.maximum(mean.max(-1), 1e-12)
-    clipped = np.stack([(im >= clipping_level(im, mask)).any(-1) for im in stack])
-    spread = np.where(clipped, 0.0, stack.max(-1) - stack.min(-1))
-    return np.where((saturation >= DIFFUSE_SATURATION)[None], spread, _dominant_channel(images)).astype(np.float32)
+    out = np.take_along_axis(stack, mean.argmax(-1)[None, ..., None], -1)[..., 0]  # as _dominant_channel
+    for k, im in enumerate(stack):
+        spread = np.where((im >= clipping_level(im, mask)).any(-1), 0.0, im.max(-1) - im.min(-1))
+        out[k] = np.where(saturation >= DIFFUSE_SATURATION, spread, out[k])
+    return out
 
 
 def _small(lum: np.ndarray, mask: np.ndarray, side: int):
