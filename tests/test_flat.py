@@ -129,7 +129,7 @@ def test_plane_lamps_places_a_glossy_samples_lamps_under_the_principled_bsdf(mon
 def test_diffuse_channel_takes_a_white_highlight_out_of_a_coloured_pixel():
     """A coloured pixel's channel spread is its diffuse shading times its colour's spread in every photo, whatever
     white highlight is added; a pale pixel keeps its brightest channel; a clipped observation is 0."""
-    from matcap.refine.flat import DIFFUSE_SATURATION, _diffuse_channel
+    from matcap.refine.flat import DIFFUSE_SATURATION, _diffuse_channel, _dominant_channel
 
     shading = np.array([0.2, 0.5, 0.9, 0.4], np.float32)
     highlight = np.array([0.0, 0.3, 0.05, 0.0], np.float32)
@@ -137,7 +137,7 @@ def test_diffuse_channel_takes_a_white_highlight_out_of_a_coloured_pixel():
     white = np.array([0.95, 0.3, 0.95], np.float32)  # each photo's brightest observation in every channel: clipped
     images = [np.stack([[sh * red + hi, sh * pale + hi, white]]) for sh, hi in zip(shading, highlight)]
     assert (0.5 - 0.4) / 0.5 < DIFFUSE_SATURATION < (0.6 - 0.1) / 0.6
-    out = _diffuse_channel(images, np.ones((1, 3), bool))
+    out = _diffuse_channel(images, np.ones((1, 3), bool), _dominant_channel(images))
     assert out.shape == (4, 1, 3)
     np.testing.assert_allclose(out[:, 0, 0], shading * 0.5, rtol=1e-5)  # the highlight gone
     np.testing.assert_allclose(out[:, 0, 1], shading * 0.5 + highlight, rtol=1e-5)  # pale: the red channel
@@ -158,7 +158,7 @@ def test_plane_lamps_places_the_lamps_of_a_glossy_coloured_relief(monkeypatch):
     toward = lamps / np.linalg.norm(lamps, axis=1, keepdims=True)
     monkeypatch.setattr(flat, "_principled_lamps", lambda torch, lum, mask, lamp, *a: (lamp, float("nan"), 1.0))
     found = np.median(_angle(plane_lamps(photos, mask).directions, toward))
-    monkeypatch.setattr(flat, "_diffuse_channel", lambda images, mask: flat._dominant_channel(images))
+    monkeypatch.setattr(flat, "_diffuse_channel", lambda images, mask, bright: bright)
     bright = np.median(_angle(plane_lamps(photos, mask).directions, toward))
     assert found < 0.8 and bright > max(1.0, 2.5 * found), (found, bright)  # measured 0.39 and 1.46 degrees
 

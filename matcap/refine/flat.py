@@ -195,23 +195,23 @@ def _dominant_channel(images) -> np.ndarray:
 DIFFUSE_SATURATION = 0.3
 
 
-def _diffuse_channel(images, mask: np.ndarray) -> np.ndarray:
+def _diffuse_channel(images, mask: np.ndarray, bright: np.ndarray) -> np.ndarray:
     """(K, H, W) each pixel's diffuse light alone where its colour allows, for placing the lamps.
 
-    images: K (H, W, 3) linear RGB photos; mask: (H, W) bool, the sample. A dielectric's highlight has the lamp's
-    colour (white after white balance) and adds alike to every channel, so the spread of a pixel's channels,
-    max - min, holds its diffuse part alone (the shading times its base colour's own spread) and is Lambertian in
-    every photo. Used where the pixel's
-    mean colour over the photos has a saturation of at least :data:`DIFFUSE_SATURATION`; elsewhere the brightest
-    channel (:func:`_dominant_channel`). An observation clipped in any channel
-    (:func:`matcap.refine.photos.clipping_level`) is 0 there, which :func:`_log_obs` leaves out."""
-    stack = np.stack([np.asarray(im, np.float32) for im in images])
-    mean = stack.mean(0)
-    saturation = (mean.max(-1) - mean.min(-1)) / np.maximum(mean.max(-1), 1e-12)
-    out = np.take_along_axis(stack, mean.argmax(-1)[None, ..., None], -1)[..., 0]  # as _dominant_channel
-    for k, im in enumerate(stack):
+    images: K (H, W, 3) linear RGB photos; mask: (H, W) bool, the sample; bright: (K, H, W) their brightest channel
+    (:func:`_dominant_channel`). A dielectric's highlight has the lamp's colour (white after white balance) and adds
+    alike to every channel, so the spread of a pixel's channels, max - min, holds its diffuse part alone (the
+    shading times its base colour's own spread) and is Lambertian in every photo. Used where the pixel's mean colour
+    over the photos has a saturation of at least :data:`DIFFUSE_SATURATION`; elsewhere ``bright``. An observation
+    clipped in any channel (:func:`matcap.refine.photos.clipping_level`) is 0 there, which :func:`_log_obs` leaves
+    out. The photos are read one at a time (no second stack of them)."""
+    mean = sum(np.asarray(im, np.float32) for im in images) / len(images)
+    coloured = (mean.max(-1) - mean.min(-1)) / np.maximum(mean.max(-1), 1e-12) >= DIFFUSE_SATURATION
+    out = np.array(bright, np.float32)
+    for k, im in enumerate(images):
+        im = np.asarray(im, np.float32)
         spread = np.where((im >= clipping_level(im, mask)).any(-1), 0.0, im.max(-1) - im.min(-1))
-        out[k] = np.where(saturation >= DIFFUSE_SATURATION, spread, out[k])
+        out[k] = np.where(coloured, spread, out[k])
     return out
 
 
@@ -581,7 +581,7 @@ def plane_lamps(images, mask: np.ndarray, *, side: int = 32, steps: int = 30, ca
     if lum.shape[1:] != mask.shape:
         raise MatcapError(f"the mask is {mask.shape[1]}x{mask.shape[0]} but the photos {lum.shape[2]}x{lum.shape[1]}")
     h, w = mask.shape
-    small, keep = _small(_diffuse_channel(images, mask), mask, side)
+    small, keep = _small(_diffuse_channel(images, mask, lum), mask, side)
     if keep.sum() < 16:
         raise MatcapError("the flat sample's mask is too small to find its lamps (fewer than 16 pixels at "
                           f"{small.shape[2]}x{small.shape[1]})")
