@@ -333,6 +333,7 @@ def dome(args) -> None:
     print("| roughness | network | fit (check decides) | light dir | kept? | fit, residual check off | light dir | "
           "check: residual / inliers / spread / solved / twin ratio (then the near-lamp and Principled looks) |")
     print("|---:|---:|---:|---:|---|---:|---:|---|")
+    decomposed = []  # --decompose: (roughness, the lamps' decomposition, the given directions' normal error)
     for rough in args.roughness:
         truth = S.textured_dome(args.side, wood, roughness=rough)
         if args.dome_light in ("dir", "point"):
@@ -356,6 +357,45 @@ def dome(args) -> None:
             if res is checked:
                 cells.append("kept" if res.report["kept_network_maps"] else "fitted")
         print(f"| {rough} | {' | '.join(cells)} | {_check(checked)} |", flush=True)
+        if args.decompose and args.dome_light in ("dir", "dir+env"):
+            decomposed.append((rough, _decompose(checked.lights, lights), _given_directions(photos, maps, s, lights,
+                                                                                            truth)))
+    if decomposed:
+        print("\nThe lamps found (checked fit) as the true lamps' irradiance vectors times one factor plus one common "
+              "vector c (least squares); the fit given the true directions alone (each photo's intensity fitted)")
+        print("| roughness | factor | c, share of the lamps' irradiance | lamps found, median angle | the same minus c "
+              "| given directions: normals |")
+        print("|---:|---:|---:|---:|---:|---:|")
+        for rough, d, given in decomposed:
+            print(f"| {rough} | {d['factor']:.3f} | {d['share']:.1%} | {d['angle']:.2f}° | {d['angle_minus_c']:.2f}° | "
+                  f"{given:.2f}° |", flush=True)
+
+
+def _decompose(found: list[dict], true) -> dict:
+    """The lamps ``found`` (lights.json entries, distant) against the ``true`` DirectionalLights: their irradiance
+    vectors (direction times mean intensity) fitted as ``factor * true + c`` by least squares (one factor, one
+    common 3-vector ``c``). Returns factor, share (``|c|`` over the mean length of ``factor * true``), angle (the
+    found lamps' median angle to the true ones, degrees) and angle_minus_c (the same for ``found - c``)."""
+    f = np.array([np.asarray(e["direction"], float) * np.mean(e["intensity"]) for e in found])
+    t = np.array([np.asarray(light.direction, float) * np.mean(light.irradiance) for light in true])
+    k = len(t)
+    a = np.zeros((3 * k, 4))
+    a[:, 0] = t.ravel()
+    a[:, 1:] = np.tile(np.eye(3), (k, 1))
+    sol = np.linalg.lstsq(a, f.ravel(), rcond=None)[0]
+    factor, c = float(sol[0]), sol[1:]
+    return {"factor": factor, "share": float(np.linalg.norm(c) / np.linalg.norm(factor * t, axis=1).mean()),
+            "angle": float(np.median([_angle(x, y) for x, y in zip(f, t)])),
+            "angle_minus_c": float(np.median([_angle(x - c, y) for x, y in zip(f, t)]))}
+
+
+def _given_directions(photos, maps, s, lights, truth) -> float:
+    """Mean normal error (degrees) of the fit given the true lamps' directions alone (their intensities fitted)."""
+    from matcap.lightfiles import KnownLights
+    from matcap.refine import refine
+
+    known = KnownLights(np.array([light.direction for light in lights], float), None, "file", "dome", "order")
+    return _mean_err(refine(photos, maps, s, lights=known).maps.normal, truth.normal, truth.mask)
 
 
 def detail(args) -> None:
@@ -549,6 +589,10 @@ def main(argv=None) -> int:
     ap.add_argument("--dome-light", choices=("dir", "point", "env", "dir+env"), default="dir",
                     help="dome: 16 directional lights plus a faint ambient (default), point lights instead "
                          "(--lamp-distance), a turning environment map alone, or directional lights and the map at 0.3")
+    ap.add_argument("--decompose", action="store_true",
+                    help="dome with directional lamps: the lamps found as the true ones times one factor plus one "
+                         "common vector (its share, the lamps' angles with and without it), and the fit given the "
+                         "true directions alone")
     ap.add_argument("--env-fixed", action="store_true",
                     help="dome with --dome-light env or dir+env: one map (studio) that never turns, as a room's light")
     ap.add_argument("--lamp-distance", type=float, default=3.0,

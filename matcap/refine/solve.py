@@ -124,7 +124,6 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
             if on_step is not None:
                 on_step(float(loss.mean()))
             continue
-        m = len(active)
         th = theta[active]
         if jacobian is not None:
             r, q, jr, jq = jacobian(th, active)
