@@ -159,7 +159,9 @@ def _known_light_stage(torch, ph: _Photos, copy: tuple, known, flat: dict | None
     # no cast-shadow rule for a flat sample (a plane facing the camera shades itself only through its small
     # relief) nor for found lamps (their errors would pass for shadow)
     shadow = 0.0 if known.source == "estimated" or flat is not None else s.loss.shadow
-    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l, shadow=shadow)
+    # the light fit finds the ambient itself: there a cast shadow is told from the whole prediction
+    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l,
+                    shadow=s.loss.shadow_light_fit if shadow > 0 else 0.0)
     lights = _init_lights(torch, prob, s, device, directions)
     if inv_distance is not None:
         lights = _to_near(torch, lights, torch.as_tensor(centre, dtype=torch.float32, device=device))

@@ -166,36 +166,49 @@ SHADOW_GAP = 0.05
 
 class _Problem:
     """Observations of N pixels: obs (K, N, 3), weight (N,), positions, priors (torch); shadow: the share of the
-    prediction below which an observation counts as cast shadow (0: none; ``loss.shadow``).
+    lamp's light below which an observation counts as cast shadow (0: none; ``loss.shadow``); ambient_sh
+    (K|1, 9, 3) or None: the SH ambient of the lights the fit holds (fit units), which a cast shadow leaves.
     upper (K, N, 3): the residual (prediction - observation) above which an observation adds none: 0 exactly where
     it is clipped (at its photo's ``sat_level``: a lower bound only), the cast-shadow level where ``shadow`` is set
-    (an observation below ``shadow`` times the prediction and at least :data:`SHADOW_GAP` below it: an upper bound
-    only), else infinite."""
+    (an observation whose excess over the ambient's part of the model is below ``shadow`` times the lamp's part, and
+    at least :data:`SHADOW_GAP` below the prediction: an upper bound only), else infinite. The ambient's part is
+    taken at the start maps (normals ``start``, the priors' base colour, roughness and metallic)."""
 
     def __init__(self, torch, stack, mask, arrays, weight, sat_level, device, idx=None, start=None,
-                 shadow: float = 0.0):
+                 shadow: float = 0.0, ambient_sh=None):
         rows, cols = np.nonzero(mask)
         if idx is not None:
             rows, cols = rows[idx], cols[idx]
         self.rows, self.cols = rows, cols
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)  # noqa: E731
         self.obs = t(stack[:, rows, cols])
-        if shadow > 0:  # obs < shadow pred and pred - obs > gap  <=>  pred - obs > max(obs (1 / shadow - 1), gap)
-            level = (self.obs * (1.0 / shadow - 1.0)).clamp(min=SHADOW_GAP)
-        else:
-            level = torch.full_like(self.obs, float("inf"))
-        self.upper = torch.where(self.obs >= t(sat_level)[:, None, :], torch.zeros_like(level), level)
         self.weight = t(weight[rows, cols])
         self.n0 = t(arrays["normal"][rows, cols])
         self.b0 = t(arrays["base"][rows, cols])
         self.r0 = t(arrays["rough"][rows, cols])
         self.m0 = t(arrays["metal"][rows, cols])
         self.ns = self.n0 if start is None else t(start[rows, cols])  # start normals (the prior is n0)
+        if shadow > 0:
+            # with A the ambient's part and P the prediction: obs - A < shadow (P - A) and P - obs > gap  <=>
+            # P - obs > max((obs - A) (1 / shadow - 1), gap)
+            above = self.obs if ambient_sh is None else self.obs - self._ambient_part(torch, ambient_sh)
+            level = (above * (1.0 / shadow - 1.0)).clamp(min=SHADOW_GAP)
+        else:
+            level = torch.full_like(self.obs, float("inf"))
+        self.upper = torch.where(self.obs >= t(sat_level)[:, None, :], torch.zeros_like(level), level)
         from matcap.refine.model import plane_positions
 
         h, w = mask.shape
         self.pos = plane_positions(torch.from_numpy(rows), torch.from_numpy(cols), h, w).to(device)
         self.backdrop = None  # (K, N, 3): what lies behind each pixel, where it mixes the object with it
+
+    def _ambient_part(self, torch, ambient_sh):
+        """(K|1, N, 3): the model's response to the SH ambient ``ambient_sh`` (K|1, 9, 3) alone, at the start maps."""
+        from matcap.refine.model import shade_fast
+
+        none = self.obs.new_zeros((1, 1, 3))
+        view = self.obs.new_tensor([0.0, 0.0, 1.0]).expand(1, 1, 3)
+        return shade_fast(self.ns, self.b0, self.r0, self.m0, view, none, ambient_sh)
 
     def __len__(self) -> int:
         return len(self.rows)

@@ -136,14 +136,16 @@ def _solve_maps(torch, obs, mask, arrays, weight, sat_level, start, lights, s: R
     device = torch.device(s.device)
     h, w = mask.shape
     c = s.loss.cauchy
-    full = _Problem(torch, obs, mask, arrays, weight, sat_level, device, start=start, shadow=shadow)
+    ambient = lights.sh.detach() if shadow > 0 else None  # a cast shadow leaves the ambient's light
+    full = _Problem(torch, obs, mask, arrays, weight, sat_level, device, start=start, shadow=shadow,
+                    ambient_sh=ambient)
     px_full = PixelParams.from_maps(full.ns, full.b0, full.r0, full.m0)
     iters_done = {"coarse": 0, "fine": 0}
     if coarse_iters > 0 and max(h, w) > 128:
         hw_c = (max(8, h // 2), max(8, w // 2))
         obs_c, mask_c, arr_c = _downsample(obs, mask, arrays if start is None else dict(arrays, start=start), hw_c)
         coarse = _Problem(torch, obs_c, mask_c, arr_c, _resize(weight, hw_c), sat_level, device,
-                          start=arr_c.get("start"), shadow=shadow)
+                          start=arr_c.get("start"), shadow=shadow, ambient_sh=ambient)
         px_c0 = PixelParams.from_maps(coarse.ns, coarse.b0, coarse.r0, coarse.m0)
         mix_c = _outline(torch, obs_c, mask_c, coarse, s)
         px_c = _solve_pixels(torch, coarse, px_c0, lights, s, c, coarse_iters, bar, "maps 1/2", mix_c)

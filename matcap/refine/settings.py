@@ -33,12 +33,16 @@ class LossSettings:
     cauchy: float = 0.15
     """Scale of the Cauchy loss on the photo residuals: shadows, interreflections and highlights the model cannot
     explain weigh less."""
-    shadow: float = 0.3
-    """With lights known (given, or from a ball), an observation darker than this share of the model's prediction
-    counts as cast shadow (the object hides the lamp from the point, which the model does not know): it bounds the
-    prediction from above only and adds no residual. 0: none. Lights the fit estimates (a flat sample's lamps
+    shadow: float = 0.2
+    """With lights known (given, or from a ball), an observation whose light above the ambient's part of the
+    model's prediction is less than this share of the lamp's part counts as cast shadow (the object hides the lamp
+    from the point, which the model does not know, and leaves it the room's light): it bounds the prediction from
+    above only and adds no residual. 0: none. Lights the fit estimates (a flat sample's lamps
     found from their falloff too) go without it: an error of the lights would pass for shadow. So does a flat
     sample under given lights: a plane facing the camera hides no lamp from itself."""
+    shadow_light_fit: float = 0.3
+    """The same rule while the lights' intensities and the ambient are fitted, before the ambient is known: there an
+    observation below this share of the whole prediction (the ambient's part included) counts as cast shadow."""
     variation_threshold: float = 0.08
     """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
     less, down to 0.1, and a warning names the share of such pixels)."""
