@@ -203,12 +203,11 @@ class _Problem:
         self.backdrop = None  # (K, N, 3): what lies behind each pixel, where it mixes the object with it
 
     def _ambient_part(self, torch, ambient_sh):
-        """(K|1, N, 3): the model's response to the SH ambient ``ambient_sh`` (K|1, 9, 3) alone, at the start maps."""
-        from matcap.refine.model import shade_fast
+        """(K|1, N, 3): the model's response to the SH ambient ``ambient_sh`` (K|1, 9, 3) alone, at the start maps:
+        the diffuse albedo (1 - metallic) base / pi times the SH irradiance."""
+        from matcap.refine.model import sh_irradiance
 
-        none = self.obs.new_zeros((1, 1, 3))
-        view = self.obs.new_tensor([0.0, 0.0, 1.0]).expand(1, 1, 3)
-        return shade_fast(self.ns, self.b0, self.r0, self.m0, view, none, ambient_sh)
+        return sh_irradiance(self.ns, ambient_sh) * ((1.0 - self.m0)[:, None] * self.b0 / math.pi)[None]
 
     def __len__(self) -> int:
         return len(self.rows)
