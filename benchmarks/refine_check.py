@@ -169,7 +169,8 @@ def uw(args) -> None:
         secs = time.perf_counter() - t0
         after = score(res.maps.normal)
         d = [_angle(_towards(e), l) for e, l in zip(res.lights, obj.light_dirs)]
-        ho = float(np.mean([_held_out(images, j, maps, known, args) for j in args.held_out or [len(images) - 1]]))
+        ho = float(np.mean([_held_out(images, j, maps, known, _settings(args))
+                            for j in args.held_out or [len(images) - 1]]))
         row = (name, before, after, float(np.median(d)), float(np.max(d)), res.report["psnr_db_mean"], ho, secs)
         rows.append(row)
         print("| {} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.1f} | {} |".format(*row, _check(res)),
@@ -178,16 +179,15 @@ def uw(args) -> None:
     print("| **mean** | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.1f} | |".format(*a.mean(0)))
 
 
-def _held_out(images, j: int, maps, known, args) -> float:
-    """PSNR (dB) of photo ``j`` predicted from the fit of the others: the maps refined on every photo but ``j``
-    (under their lights, where ``known``), then only photo j's light fitted to them with the maps frozen."""
+def _held_out(images, j: int, maps, known, s) -> float:
+    """PSNR (dB) of photo ``j`` predicted from the fit of the others (settings ``s``): the maps refined on every photo
+    but ``j`` (under their lights, where ``known``), then only photo j's light fitted to them with the maps frozen."""
     from matcap.refine import refine
     from matcap.refine.estimated_lights import fit_light_only
 
     keep = [i for i in range(len(images)) if i != j]
-    held = refine([images[i] for i in keep], maps, _settings(args), lights=None if known is None else
-                  known.subset(keep))
-    return fit_light_only(images[j], held.maps, _settings(args))["psnr_db"]
+    held = refine([images[i] for i in keep], maps, s, lights=None if known is None else known.subset(keep))
+    return fit_light_only(images[j], held.maps, s)["psnr_db"]
 
 
 def synthetic(args) -> None:
