@@ -227,6 +227,44 @@ def test_the_pixel_solve_does_not_depend_on_the_chunks():
         assert all(torch.equal(a, b) for a, b in zip(outs[0].tensors(), other.tensors()))
 
 
+@pytest.mark.parametrize("mixed", [False, True])
+@pytest.mark.parametrize("fit_brdf", [True, False])
+def test_the_pixel_system_is_the_normal_equations_of_the_jacobian(mixed, fit_brdf):
+    """The per-pixel solve's Gauss-Newton system, built in the model's layout (a base colour channel's zeros
+    skipped, clipped and shadowed observations through their weight), is the generic one of its residuals'
+    Jacobian (solve._normal_equations with the Cauchy loss's IRLS weights): with clipped observations, cast-shadow
+    bounds, per-pixel weights, the outline's coverage (``mixed``) and with roughness and metallic held."""
+    from matcap.refine.solve import _normal_equations
+
+    _, _, prob, lights, px0 = _glossy_sphere_problem(32)
+    sat = np.full((prob.obs.shape[0], 3), float(prob.obs.max()) * 0.8, np.float32)  # the highlights clip
+    truth = S.sphere_maps(32)
+    weight = np.random.default_rng(0).uniform(0.5, 1.5, truth.mask.shape).astype(np.float32)
+    obs = np.zeros((prob.obs.shape[0],) + truth.mask.shape + (3,), np.float32)
+    obs[:, truth.mask] = prob.obs.numpy()
+    obs[:3, :, :16] *= 0.2  # three photos' left half in cast shadow
+    prob = P._Problem(torch, obs, truth.mask, P._maps_arrays(S.perturb(truth)), weight, sat, torch.device("cpu"),
+                      shadow=0.3)
+    s = RefineSettings(seed=0).replace({"model.fit_brdf": fit_brdf})
+    start = list(px0.tensors())
+    if mixed:
+        prob.backdrop = torch.rand(prob.obs.shape[0], len(prob), 3, generator=torch.Generator().manual_seed(3))
+        start.append(torch.full((len(prob),), 1.5))
+    theta, _, jacobian, system, _ = PX._pixel_residuals(torch, prob, start, s)
+    theta = theta + 0.05 * torch.randn(theta.shape, generator=torch.Generator().manual_seed(4))
+    rows = torch.arange(len(theta))
+    live = lights.detached()
+    w = prob.weight / 3.0
+    with torch.no_grad():
+        r, q, jr, jq = jacobian(theta, rows, live)
+        grad0, hess0 = _normal_equations(r, q, jr, jq, w[:, None] * 2.0 / (0.15 ** 2 + r * r))
+        grad, hess = system(theta, rows, live, w, 0.15)
+    assert float((r == 0).float().mean()) > 0.05  # clipped and shadowed observations are in
+    assert grad.shape == grad0.shape and hess.shape == hess0.shape == (len(theta),) + 2 * (theta.shape[1],)
+    assert float((grad - grad0).abs().max()) <= 1e-5 * float(grad0.abs().max())
+    assert float((hess - hess0).abs().max()) <= 1e-5 * float(hess0.abs().max())
+
+
 def test_the_light_fit_does_not_depend_on_the_thread_count(monkeypatch):
     """The light fit sums each step's loss and gradient over two halves of its pixels, side by side where torch
     has two threads: the lights and the last data term are the same bits on one thread and on two. (The process

@@ -268,7 +268,7 @@ def _fit_intensities(torch, prob: _Problem, lights, s: RefineSettings, bar, rela
     from matcap.refine.solve import joint_levenberg_marquardt
 
     px = PixelParams.from_maps(prob.ns, prob.b0, prob.r0, prob.m0)
-    theta, residuals, jacobian, _ = _pixel_residuals(torch, prob, px.tensors(), s)
+    theta, residuals, jacobian, _, _ = _pixel_residuals(torch, prob, px.tensors(), s)
     k_count = prob.obs.shape[0]
     dev = theta.device
     ambient = ambient_free and s.model.ambient != "none"

@@ -1,10 +1,10 @@
 """Many small independent least-squares problems at once: Levenberg-Marquardt per pixel (torch, any device).
 
 Once the lights are fixed every pixel of the fit is its own problem in a handful of parameters (normal gradient,
-base colour, roughness, metallic: 7). :func:`levenberg_marquardt` solves N of them together: the Jacobians
-given in closed form by the caller (or forward-mode automatic differentiation, a tangent per parameter, all in one
-vectorised ``torch.func.jvp``), a Gauss-Newton system per pixel with the
-Cauchy loss's iteratively reweighted least-squares weights, its damping adapted per pixel (a step is kept only
+base colour, roughness, metallic: 7). :func:`levenberg_marquardt` solves N of them together: a Gauss-Newton
+system per pixel with the Cauchy loss's iteratively reweighted least-squares weights (given in closed form by the
+caller, or from forward-mode automatic differentiation, a tangent per parameter, all in one vectorised
+``torch.func.jvp``), its damping adapted per pixel (a step is kept only
 where it lowers that pixel's loss), and the P x P systems solved by :func:`cholesky_solve`, written out
 elementwise over the pixels so that the result does not depend on how a BLAS splits the work (the fit must be
 bit-for-bit repeatable for a seed).
@@ -60,8 +60,7 @@ def cholesky_solve(h: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
 
 
 ResidualFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
-JacobianFn = Callable[[torch.Tensor, torch.Tensor],
-                      tuple[torch.Tensor, torch.Tensor, list[torch.Tensor], list[torch.Tensor]]]
+SystemFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, float], tuple[torch.Tensor, torch.Tensor]]
 Shared = tuple[list[int], torch.Tensor, torch.Tensor]
 LAM_DONE = 1e3  # rejected steps count toward "done" once the damping has grown to this
 
@@ -78,16 +77,16 @@ def robust_loss(robust: torch.Tensor, quadratic: torch.Tensor, weight: torch.Ten
 def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torch.Tensor, scale: float,
                         iters: int, damping: float = 1e-2, on_step: Callable[[float], None] | None = None,
                         shared: Shared | None = None, tol: float = 1e-4,
-                        jacobian: JacobianFn | None = None) -> torch.Tensor:
+                        system: SystemFn | None = None) -> torch.Tensor:
     """Minimise :func:`robust_loss` of ``residuals(theta)`` for N independent problems of P parameters.
 
     residuals: (theta (n, P), rows (n,) int64) -> (robust (n, M), quadratic (n, Q)) of the problems ``rows``
     (their parameters ``theta``), row i depending on theta[i] alone;
     theta: (N, P) start; weight (N,) and scale: of the robust part. Returns theta (N, P) after ``iters``
-    iterations. Each iteration: the Jacobian (``jacobian``), the Gauss-Newton system with weights
-    ``2 weight / (scale^2 + r^2)`` (the Cauchy loss's IRLS weights, so the step is a descent direction) damped by
-    ``lambda * diag`` (Marquardt), one trial step; a problem keeps the step only if its loss went down (then
-    lambda / 3, else lambda * 4, per problem).
+    iterations. Each iteration: the Gauss-Newton system (``system``) with weights ``2 weight / (scale^2 + r^2)``
+    (the Cauchy loss's IRLS weights, so the step is a descent direction) damped by ``lambda * diag`` (Marquardt),
+    one trial step; a problem keeps the step only if its loss went down (then lambda / 3, else lambda * 4, per
+    problem).
     A problem whose loss went down by at most ``tol`` of itself in two iterations in a row is done and drops out,
     so that later iterations cost only what still moves. Such an iteration is an accepted step that gained that
     little, or a rejected one where the undamped Gauss-Newton step promises that little by the quadratic model
@@ -95,10 +94,10 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
     lambda has grown to LAM_DONE.
     ``on_step(mean loss)`` after each iteration.
 
-    jacobian: (theta (n, P), rows) -> (robust (n, M), quadratic (n, Q), [d robust / d theta_j (n, M)] * P,
-    [d quadratic / d theta_j (n, Q)] * P): the residuals with their Jacobian in closed form; without it the
-    Jacobian is forward-mode automatic differentiation of ``residuals`` (a tangent per parameter, all of them in
-    one vectorised ``jvp``), where
+    system: (theta (n, P), rows, weight (n,), scale) -> (gradient (n, P), Gauss-Newton matrix (n, P, P)) of
+    :func:`robust_loss` with those weights (:func:`_normal_equations`) at the problems ``rows``, in closed form
+    from a caller that knows its model's derivatives; without it the Jacobian is forward-mode automatic
+    differentiation of ``residuals`` (a tangent per parameter, all of them in one vectorised ``jvp``), where
     shared: (params, robust_owner (M,), quadratic_owner (Q,)): parameters that move disjoint residual entries
     (a colour's three channels) share one tangent; entry e's derivative is credited to ``params[owner[e]]``.
     """
@@ -125,13 +124,13 @@ def levenberg_marquardt(residuals: ResidualFn, theta: torch.Tensor, weight: torc
                 on_step(float(loss.mean()))
             continue
         th = theta[active]
-        if jacobian is not None:
-            r, q, jr, jq = jacobian(th, active)
+        if system is not None:
+            grad, hess = system(th, active, weight[active], scale)
         else:
             r, q, jr, jq = _forward_jacobian(residuals, th, active, groups, shared)
-        r, q = r.detach(), q.detach()
-        w = weight[active, None] * 2.0 / (c2 + r * r)  # IRLS weight: rho'(r) / r of weight * log(1 + r^2 / c^2)
-        grad, hess = _normal_equations(r, q, jr, jq, w)
+            r, q = r.detach(), q.detach()
+            w = weight[active, None] * 2.0 / (c2 + r * r)  # IRLS weight: rho'(r) / r of weight * log(1 + r^2 / c^2)
+            grad, hess = _normal_equations(r, q, jr, jq, w)
         diag = torch.diagonal(hess, dim1=1, dim2=2).clone()
         lam_a = lam[active]
         hess[:, eye, eye] = diag * (1.0 + lam_a[:, None]) + 1e-6
