@@ -356,6 +356,15 @@ def _lm_pixels(torch, part: _Problem, start, lights, s, c, iters, on_step):
     return unpack(theta)
 
 
+def _sum_photos(x):
+    """(K, n, 3) -> (n, 3): the photos summed one after another (torch's sum over the first dimension groups its
+    terms by the tensor's size, and the fit must not depend on its chunks)."""
+    acc = x[0].clone()
+    for k in range(1, len(x)):
+        acc += x[k]
+    return acc
+
+
 def _pixel_residuals(torch, part: _Problem, start, s):
     """:func:`_loss` of the pixels ``part`` as residuals for Levenberg-Marquardt: the same data term (Cauchy,
     clipped highlights a lower bound only, weighted per pixel and averaged over the colour channels) and the same
@@ -365,8 +374,8 @@ def _pixel_residuals(torch, part: _Problem, start, s):
 
     Returns (theta (N, P): the parameters as one array; residuals(theta, rows, lights) -> (robust (n, K * 3),
     entry k * 3 + c photo k's channel c; quadratic); jacobian(theta, rows, lights, state=False) -> those with
-    their derivatives (:func:`matcap.refine.solve.levenberg_marquardt`'s ``jacobian``), and with ``state`` a
-    fifth value, the model's pieces {"normal", "base", "metal" (n,), "pred" (K, n, 3), "free" (K, n, 3) 0 / 1,
+    their derivatives by each parameter ((n, K * 3) and (n, Q) each: the light fit's joint solve), and with
+    ``state`` a fifth value, the model's pieces {"normal", "base", "metal" (n,), "pred" (K, n, 3), "free" (K, n, 3) 0 / 1,
     "d_level" (n, Q): the priors' derivatives by ``level``}; system(theta, rows, lights, weight (n,), scale) ->
     the Gauss-Newton system of those residuals (``levenberg_marquardt``'s ``system``); unpack(theta) -> the tensors
     of ``start``). ``level`` (a scalar tensor, or None for 0): the log of a factor on the networks' base colour in
@@ -385,11 +394,10 @@ def _pixel_residuals(torch, part: _Problem, start, s):
 
     taken = [None, part]  # the rows last taken and their problem: the Jacobian and the trial step share them
 
-    def pixels(t, rows, sub=None):  # sub: the problem of the pixels rows, where the caller took it
-        if sub is None:
-            if len(rows) != n and rows is not taken[0]:
-                taken[:] = [rows, part.take(rows)]
-            sub = part if len(rows) == n else taken[1]
+    def pixels(t, rows):
+        if len(rows) != n and rows is not taken[0]:
+            taken[:] = [rows, part.take(rows)]
+        sub = part if len(rows) == n else taken[1]
         rl, ml = (t[:, 5], t[:, 6]) if brdf else (rough_logit[rows], metal_logit[rows])
         px = PixelParams(t[:, 0:2], t[:, 2:5], rl, ml)
         return sub, px, px.normal(), px.base(), px.rough() if brdf else sub.r0, px.metal() if brdf else sub.m0
@@ -412,14 +420,14 @@ def _pixel_residuals(torch, part: _Problem, start, s):
         a = torch.sigmoid(t[:, ci])[None, :, None]
         return a * pred + (1.0 - a) * sub.backdrop
 
-    def residuals(t, rows, lights, level=None, sub=None):
-        sub, _, nrm, b, r, m = pixels(t, rows, sub)
+    def residuals(t, rows, lights, level=None):
+        sub, _, nrm, b, r, m = pixels(t, rows)
         res = mix(t, sub, _shade(lights, sub.pos, nrm, b, r, m)) - sub.obs
         res = res * _free(sub, res)
         return res.permute(1, 0, 2).reshape(len(t), -1), priors(sub, nrm, b, r, m, t, level)
 
-    def derivatives(t, rows, lights, sub=None):  # the model and its derivatives, (K, n, 3) (d_normal: (2, K, n, 3))
-        sub, px, nrm, b, r, m = pixels(t, rows, sub)
+    def derivatives(t, rows, lights):  # the model and its derivatives, (K, n, 3) each (d_normal: (2, K, n, 3))
+        sub, px, nrm, b, r, m = pixels(t, rows)
         # the unit normal's derivatives by its gradient parameters: (e_x - n n_x) / |v|, (e_y - n n_y) / |v|
         size = torch.cat([px.grad, torch.ones_like(px.grad[:, :1])], 1).norm(dim=-1, keepdim=True)
         axes = torch.eye(3, dtype=t.dtype, device=t.device)[:2, None, :]
@@ -443,23 +451,24 @@ def _pixel_residuals(torch, part: _Problem, start, s):
         free = _free(sub, res).to(t.dtype)
         return sub, nrm, b, r, m, tangents, pred, res, free, d_n, d_b, d_r, d_m, d_a, sb
 
+    def own_priors(t, b, r, m, sb, q_width):
+        """The prior residuals that move with one parameter each (all but the normal's three, which move with
+        both gradient parameters along the tangents): [(parameter, prior column, derivative (n,))], in the
+        parameters' order."""
+        own = [(2 + c, 3 + c, roots[1] * sb[:, c] / (b[:, c] + 0.02)) for c in range(3)]
+        if brdf:
+            own += [(5, 6, roots[2] * r * (1.0 - r)), (6, 7, roots[3] * m * (1.0 - m))]
+        if mixed:
+            a = torch.sigmoid(t[:, ci])
+            own.append((ci, q_width - 1, -roots[4] * a * (1.0 - a)))
+        return own
+
     def prior_jacobian(t, b, r, m, tangents, sb, q_width):  # the priors' derivatives by each parameter, (n, Q)
         count = len(t)
         jq = [torch.cat([roots[0] * tangents[i], t.new_zeros(count, q_width - 3)], 1) for i in range(2)]
-        for c in range(3):
-            col = t.new_zeros(count, q_width)
-            col[:, 3 + c] = roots[1] * sb[:, c] / (b[:, c] + 0.02)
-            jq.append(col)
-        if brdf:
-            for i, v in enumerate((r, m)):
-                col = t.new_zeros(count, q_width)
-                col[:, 6 + i] = roots[2 + i] * v * (1.0 - v)
-                jq.append(col)
-        if mixed:
-            a = torch.sigmoid(t[:, ci])
-            col = t.new_zeros(count, q_width)
-            col[:, q_width - 1] = -roots[4] * a * (1.0 - a)
-            jq.append(col)
+        for _, col, d in own_priors(t, b, r, m, sb, q_width):
+            jq.append(t.new_zeros(count, q_width))
+            jq[-1][:, col] = d
         return jq
 
     def jacobian(t, rows, lights, state=False, level=None):
@@ -482,20 +491,19 @@ def _pixel_residuals(torch, part: _Problem, start, s):
                                        "d_level": d_level}
         return robust, q, jr, jq
 
-    def system(t, rows, lights, weight, scale, sub=None):
+    def system(t, rows, lights, weight, scale):
         """The Gauss-Newton system of :func:`jacobian`'s residuals (gradient (n, P), matrix (n, P, P)) with the
         Cauchy loss's IRLS weights, in the model's (K, n, 3) layout: a base colour channel's derivative is zero
         in the other two channels, so its products are taken once for all three, and a clipped observation's
         zero enters through its weight."""
-        sub, nrm, b, r, m, tangents, pred, res, free, d_n, d_b, d_r, d_m, d_a, sb = derivatives(t, rows, lights, sub)
+        sub, nrm, b, r, m, tangents, pred, res, free, d_n, d_b, d_r, d_m, d_a, sb = derivatives(t, rows, lights)
         count, p = t.shape
         rf = res * free
         wf = free * (2.0 * weight)[None, :, None] / (scale * scale + rf * rf)  # IRLS weight; 0 where not free
         other = [d_n[0], d_n[1]] + ([d_r, d_m] if brdf else []) + ([d_a] if mixed else [])
         index = [0, 1] + ([5, 6] if brdf else []) + ([ci] if mixed else [])
-        total = lambda x: over_photos(x).sum(1)  # noqa: E731  (K, n, 3) -> (n,)
-        # the priors: the normal's three residuals move with its two gradient parameters, every other prior
-        # residual with one parameter of its own (prior_jacobian's columns, written out)
+        total = lambda x: _sum_photos(x).sum(1)  # noqa: E731  (K, n, 3) -> (n,)
+        # the priors: prior_jacobian's columns without their zeros
         q = priors(sub, nrm, b, r, m, t)
         grad = t.new_zeros(count, p)
         hess = t.new_zeros(count, p, p)
@@ -504,23 +512,17 @@ def _pixel_residuals(torch, part: _Problem, start, s):
             grad[:, i] = 2.0 * r0 * (q[:, 0:3] * tangents[i]).sum(1)
             for j in range(i, 2):
                 hess[:, i, j] = hess[:, j, i] = 2.0 * r0 * r0 * (tangents[i] * tangents[j]).sum(1)
-        own = [(2 + c, 3 + c, roots[1] * sb[:, c] / (b[:, c] + 0.02)) for c in range(3)]
-        if brdf:
-            own += [(5, 6, roots[2] * r * (1.0 - r)), (6, 7, roots[3] * m * (1.0 - m))]
-        if mixed:
-            a = torch.sigmoid(t[:, ci])
-            own.append((ci, q.shape[1] - 1, -roots[4] * a * (1.0 - a)))
-        for i, col, d in own:
+        for i, col, d in own_priors(t, b, r, m, sb, q.shape[1]):
             grad[:, i] = 2.0 * q[:, col] * d
             hess[:, i, i] = 2.0 * d * d
         wr = wf * rf
-        grad[:, 2:5] += over_photos(wr * d_b)
+        grad[:, 2:5] += _sum_photos(wr * d_b)
         wb = wf * d_b
-        hess[:, 2:5, 2:5] += torch.diag_embed(over_photos(wb * d_b))
+        hess[:, 2:5, 2:5] += torch.diag_embed(_sum_photos(wb * d_b))
         for a_i, (i, col) in enumerate(zip(index, other)):
             grad[:, i] += total(wr * col)
             wc = wf * col
-            cross = over_photos(wc * d_b)  # (n, 3): with each base colour channel
+            cross = _sum_photos(wc * d_b)  # (n, 3): with each base colour channel
             hess[:, i, 2:5] += cross
             hess[:, 2:5, i] += cross
             for j, col_j in zip(index[a_i:], other[a_i:]):
@@ -529,14 +531,6 @@ def _pixel_residuals(torch, part: _Problem, start, s):
                 if j != i:
                     hess[:, j, i] += v
         return grad, hess
-
-    # (K, n, 3) -> (n, 3): the photos summed one after another (torch's sum over the first dimension groups its
-    # terms by the tensor's size, and the fit must not depend on its chunks)
-    def over_photos(x):
-        acc = x[0].clone()
-        for k in range(1, len(x)):
-            acc += x[k]
-        return acc
 
     def unpack(theta):
         out = [theta[:, 0:2], theta[:, 2:5]]

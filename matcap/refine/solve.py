@@ -4,10 +4,9 @@ Once the lights are fixed every pixel of the fit is its own problem in a handful
 base colour, roughness, metallic: 7). :func:`levenberg_marquardt` solves N of them together: a Gauss-Newton
 system per pixel with the Cauchy loss's iteratively reweighted least-squares weights (given in closed form by the
 caller, or from forward-mode automatic differentiation, a tangent per parameter, all in one vectorised
-``torch.func.jvp``), its damping adapted per pixel (a step is kept only
-where it lowers that pixel's loss), and the P x P systems solved by :func:`cholesky_solve`, written out
-elementwise over the pixels so that the result does not depend on how a BLAS splits the work (the fit must be
-bit-for-bit repeatable for a seed).
+``torch.func.jvp``), its damping adapted per pixel (a step is kept only where it lowers that pixel's loss), and
+the P x P systems solved by :func:`cholesky_solve`, written out elementwise over the pixels so that the result
+does not depend on how a BLAS splits the work (the fit must be bit-for-bit repeatable for a seed).
 
 A second-order solve: on glossy surfaces a first-order one (Adam) needs about ten times the iterations and
 still stops short of the minimum (tests/test_refine_solve.py).
