@@ -6,7 +6,7 @@ their intensities fitted again (:func:`_refit_intensities`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -48,36 +48,156 @@ def _place_lamps(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarr
 
 
 def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.ndarray,
-                     relative: np.ndarray | None = None, rounds: int = 4) -> np.ndarray:
-    """Per-photo irradiance (K,) of lights whose directions are known, as the start of the light fit: robust
-    Lambertian normals under the lights (:func:`matcap.refine.linear.solve_normals`: shadows and highlights weigh
-    little) alternated with each photo's irradiance by least squares over the pixels it lights. From equal lamps,
-    this moves little; the joint Principled fit that follows finds each photo's intensity.
+                     relative: np.ndarray | None = None, rounds: int = 4, ambient_order: int | None = 1,
+                     pixels: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+    """Per-photo irradiance (K,) of lights whose directions are known, and a room's light that every photo shares,
+    as the start of the light fit. The room's light first (:func:`_room_light`, on up to ``pixels`` pixels
+    solved under equal lamps); then robust Lambertian normals under the lights and that room's light
+    (:func:`matcap.refine.linear.solve_normals`: shadows and highlights weigh little) alternated ``rounds`` times
+    with each photo's irradiance by least squares over the pixels it lights, the room's part taken off. From equal
+    lamps this moves little; the joint Principled fit that follows finds each photo's intensity.
 
     luminance: (K, P) photo luminance; directions: (K, 3) unit; normal: (P, 3) start normals (the networks');
-    relative: (K,) given relative irradiances (only their overall scale is found) or None. The overall scale is
-    fixed so that the mean irradiance is the photos' mean luminance times pi (the albedo absorbs the rest).
+    relative: (K,) given relative irradiances (only their overall scale is found, and no room light) or None;
+    ambient_order: the room's irradiance at a normal n is ``a[0]`` (order 0) or ``a[0] + a[1:] . n`` (order 1),
+    or None: none (a flat sample's photos cannot tell it from each photo's intensity). The overall scale is fixed
+    so that the mean irradiance is the photos' mean luminance times pi (the albedo absorbs the rest). Returns
+    (irradiance (K,), the room's light ``a`` (4,) in the irradiance's units; zeros where none).
     """
     from matcap.refine.linear import solve_normals
 
     y = np.asarray(luminance, np.float64)
     d = np.asarray(directions, np.float64)
     level = max(float(y.mean()) * math.pi, 1e-9)
+    room = np.zeros(4)
     if relative is not None:
         rel = np.asarray(relative, np.float64)
-        return rel * level / max(float(rel.mean()), 1e-12)
+        return rel * level / max(float(rel.mean()), 1e-12), room
     e = np.full(len(d), level)
-    for _ in range(rounds):
+    if ambient_order is not None:
         n, alb, solved = solve_normals(y, d * e[:, None], normal)
+        if solved.sum() >= 16:
+            pick = np.flatnonzero(solved)[::max(1, int(solved.sum()) // pixels)]
+            room = _room_light(y[:, pick], d, n[pick] * alb[pick, None], level, (1, 4)[min(ambient_order, 1)])
+    for _ in range(rounds):
+        n, alb, solved = solve_normals(y, d * e[:, None], normal, ambient=room)
         if solved.sum() < 16:
             break
-        shading = np.clip((n[solved] @ d.T), 0.0, None).T * alb[solved][None]  # (K, P) per unit irradiance
+        n64, alb64 = n[solved].astype(np.float64), alb[solved].astype(np.float64)
+        shading = np.clip((n64 @ d.T), 0.0, None).T * alb64[None]  # (K, P) per unit irradiance
         lit = shading > 0.05 * np.maximum(shading.max(axis=1, keepdims=True), 1e-12)
-        num = (y[:, solved] * shading * lit).sum(1)
+        lamp = y[:, solved] - (alb64 * (room[0] + n64 @ room[1:]))[None]  # the room's part taken off
+        num = (lamp * shading * lit).sum(1)
         den = (shading ** 2 * lit).sum(1)
-        e = np.clip(np.where(den > 1e-12, num / np.maximum(den, 1e-12), e), 1e-6, None)
-        e *= level / e.mean()
-    return e
+        e_new = np.clip(np.where(den > 1e-12, num / np.maximum(den, 1e-12), e), 1e-6, None)
+        factor = level / e_new.mean()
+        e, room = e_new * factor, room * factor
+    return e, room
+
+
+def _room_light(y: np.ndarray, d: np.ndarray, b: np.ndarray, level: float, terms: int,
+                iters: int = 30) -> np.ndarray:
+    """A room's light shared by every photo, ``a`` (4,) (its first ``terms`` entries fitted, the rest 0), fitted
+    together with each photo's irradiance e (K,) and each pixel's b (albedo times normal) by robust Gauss-Newton
+    (Cauchy weights of scale a fifth of the mean luminance, refreshed each iteration; Levenberg-Marquardt damping;
+    the pixels eliminated through their 3x3 blocks) on the Lambertian model
+    ``y_kp = e_k max(b_p . d_k, 0) + a[0] |b_p| + a[1:] . b_p``.
+
+    y: (K, P) luminance; d: (K, 3) unit directions; b: (P, 3) start; level: the mean of e, held (the albedo takes
+    the rest). The room's light is kept at most ``a[0]`` from its mean (light from every side cannot be negative
+    anywhere) and ``a[0]`` at least 0. The irradiances serve the room's light only: unlike it, they follow
+    whatever the Lambertian model misses (a highlight, an interreflection), and the caller finds them again.
+    """
+    k_count, p_count = y.shape
+    g_count = k_count + terms
+    e = np.full(k_count, level)
+    amb = np.zeros(4)
+    scale = 0.2 * max(float(y.mean()), 1e-12)
+    lam = 1e-3
+    photo = np.arange(k_count)
+
+    def model(e, amb, b):
+        size = np.linalg.norm(b, axis=1)
+        cos = d @ b.T  # (K, P)
+        return e[:, None] * np.clip(cos, 0.0, None) + (amb[0] * size + b @ amb[1:])[None], cos, size
+
+    def cost(e, amb, b, w):
+        return float((w * (y - model(e, amb, b)[0]) ** 2).sum())
+
+    def feasible(a):
+        a = a.copy()
+        a[0] = max(a[0], 0.0)
+        tilt = float(np.linalg.norm(a[1:]))
+        if tilt > a[0]:
+            a[1:] *= a[0] / max(tilt, 1e-30)
+        return a
+
+    pred, cos, size = model(e, amb, b)
+    for _ in range(iters):
+        w = 1.0 / (1.0 + ((y - pred) / scale) ** 2)
+        r = y - pred
+        # d pred / d b_p (K, P, 3); d pred / d e_k: photo k's own column; d pred / d a: the room's terms (P, terms)
+        jb = (e[:, None] * (cos > 0))[..., None] * d[:, None, :] + amb[1:] \
+            + amb[0] * (b / np.maximum(size, 1e-12)[:, None])
+        room = np.concatenate([size[:, None], b], 1)[:, :terms]
+        je = np.clip(cos, 0.0, None)
+        h_pp = np.einsum("kp,kpi,kpj->pij", w, jb, jb)
+        h_pg = np.concatenate([np.einsum("kp,kpi,kp->pik", w, jb, je), np.einsum("kp,kpi,pj->pij", w, jb, room)], 2)
+        h_gg = np.zeros((g_count, g_count))
+        h_gg[photo, photo] = (w * je ** 2).sum(1)
+        h_gg[:k_count, k_count:] = np.einsum("kp,kp,pj->kj", w, je, room)
+        h_gg[k_count:, :k_count] = h_gg[:k_count, k_count:].T
+        h_gg[k_count:, k_count:] = np.einsum("p,pi,pj->ij", w.sum(0), room, room)
+        g_p = np.einsum("kp,kp,kpi->pi", w, r, jb)
+        g_g = np.concatenate([(w * r * je).sum(1), np.einsum("kp,pj->j", w * r, room)])
+        base = cost(e, amb, b, w)
+        for _ in range(8):  # damping raised until the step lowers the weighted cost
+            inv = np.linalg.inv(h_pp + lam * (np.trace(h_pp, axis1=1, axis2=2)[:, None, None] / 3.0 + 1e-12)
+                                * np.eye(3))
+            q = np.einsum("pij,pjg->pig", inv, h_pg)  # H_pp^-1 H_pg
+            reduced = h_gg + lam * np.diag(np.diag(h_gg) + 1e-12) - np.einsum("pig,pih->gh", h_pg, q)
+            step = np.linalg.lstsq(reduced, g_g - np.einsum("pig,pi->g", q, g_p), rcond=None)[0]
+            e_new = np.clip(e + step[:k_count], 1e-9, None)
+            amb_new = amb.copy()
+            amb_new[:terms] += step[k_count:]
+            amb_new = feasible(amb_new)
+            b_new = b + np.einsum("pij,pj->pi", inv, g_p) - np.einsum("pig,g->pi", q, step)
+            f = level / e_new.mean()  # the gauge: the mean irradiance held, the albedo taking the rest
+            e_new, amb_new, b_new = e_new * f, amb_new * f, b_new / f
+            if cost(e_new, amb_new, b_new, w) < base:
+                e, amb, b = e_new, amb_new, b_new
+                lam = max(lam / 3.0, 1e-7)
+                break
+            lam *= 10.0
+        else:
+            break
+        pred, cos, size = model(e, amb, b)
+    return amb
+
+
+def _lights_with_room(torch, prob: _Problem, lights, irr: np.ndarray, room: np.ndarray):
+    """``lights`` (directions as given) with each photo's intensity and the shared ambient taken from the Lambertian
+    estimate (:func:`known_irradiance`: irradiances ``irr`` (K,) and the room's light ``room`` (4,), in luminance
+    units), brought to fit units by one factor per colour channel: least squares of the subsample's photos
+    ``prob.obs`` (K, N, 3) against the networks' base colour over pi times that irradiance at the start normals.
+    The room's light becomes the SH ambient's orders 0 and 1 (grey)."""
+    from matcap.refine.model import SH_A, SH_C0, SH_C1
+
+    n = prob.ns.double()
+    d = lights.vec.double() / lights.vec.double().norm(dim=-1, keepdim=True)
+    e = torch.as_tensor(irr, dtype=torch.float64, device=n.device)
+    a = torch.as_tensor(room, dtype=torch.float64, device=n.device)
+    shading = e[:, None] * (n @ d.T).clamp(min=0.0).T + (a[0] + n @ a[1:])[None]  # (K, N)
+    basis = prob.b0.double()[None] / math.pi * shading[..., None]  # (K, N, 3)
+    w = prob.weight.double()[None, :, None]
+    factor = (w * basis * prob.obs.double()).sum((0, 1)) / (w * basis ** 2).sum((0, 1)).clamp(min=1e-12)  # (3,)
+    factor = factor.clamp(min=1e-6)
+    log_i = torch.log(e[:, None] * factor[None]).to(lights.log_intensity.dtype)
+    sh = torch.zeros_like(lights.sh)
+    per_term = torch.stack([a[0] / (SH_A[0] * SH_C0), a[2] / (SH_A[1] * SH_C1), a[3] / (SH_A[2] * SH_C1),
+                            a[1] / (SH_A[3] * SH_C1)])  # the basis' order: 1, y, z, x
+    sh[:, :4] = (per_term[:, None] * factor[None]).to(sh.dtype)
+    return replace(lights, log_intensity=log_i, sh=sh)
 
 
 @dataclass
@@ -142,27 +262,30 @@ def _known_light_stage(torch, ph: _Photos, copy: tuple, known, flat: dict | None
     # swatch's corner left it there
     guess = arrays["normal"] if flat is None else _plane_normals(mask)
     guess_l = arr_l["normal"] if flat is None else _plane_normals(mask_l)
-    irr = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, guess_l[rows_l, cols_l],
-                           None if given is None else given @ luma)
+    # a room's light (the photos' shared part): an object's only, a plane's photos cannot tell it from the lamps'
+    room_order = None if flat is not None or s.model.ambient == "none" else s.lights.known_ambient_order
+    irr, room = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, guess_l[rows_l, cols_l],
+                                 None if given is None else given @ luma, ambient_order=room_order)
     s_lum = directions * irr[:, None]
     # a flat sample keeps the misfit Lambertian normals: the networks' are a poorer fallback on a swatch's relief
     misfit = s.priors.lambertian_misfit if flat is None else None
-    start, photo_report = _photo_normals(obs, mask, guess, s_lum, positions=known.positions, max_misfit=misfit)
+    start, photo_report = _photo_normals(obs, mask, guess, s_lum, positions=known.positions, max_misfit=misfit,
+                                         ambient=room)
     arrays = dict(arrays, normal=start)
     if hw_l == (h, w):
         arr_l, start_l = arrays, start
     else:
         start_l, _ = _photo_normals(obs_l, mask_l, guess_l, s_lum, photo_report, positions=known.positions,
-                                    max_misfit=misfit)
+                                    max_misfit=misfit, ambient=room)
         arr_l = dict(arr_l, normal=start_l)
     idx = _known_subsample(mask_l, s, rng)
     # no cast-shadow rule for a flat sample (a plane facing the camera shades itself only through its small
     # relief) nor for found lamps (their errors would pass for shadow)
     shadow = 0.0 if known.source == "estimated" or flat is not None else s.loss.shadow
-    # the light fit finds the ambient itself: there a cast shadow is told from the whole prediction
-    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l,
-                    shadow=s.loss.shadow_light_fit if shadow > 0 else 0.0)
+    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
     lights = _init_lights(torch, prob, s, device, directions)
+    if given is None and room_order is not None:  # each photo's intensity and the room's light: the Lambertian's
+        lights = _lights_with_room(torch, prob, lights, irr, room)
     if inv_distance is not None:
         lights = _to_near(torch, lights, torch.as_tensor(centre, dtype=torch.float32, device=device))
         lights.inv_distance = torch.as_tensor(inv_distance, dtype=torch.float32, device=device)
@@ -180,6 +303,9 @@ def _known_light_stage(torch, ph: _Photos, copy: tuple, known, flat: dict | None
             amb = np.asarray(known.ambient, np.float64)
             amb = amb if s.model.ambient == "per-image" else amb.mean(0, keepdims=True)
             lights.sh = torch.as_tensor(amb, dtype=torch.float32, device=device) * offset.exp()
+    if shadow > 0:  # the cast-shadow rule of the per-pixel stage, the ambient's part at its start
+        prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l, shadow=shadow,
+                        ambient_sh=lights.sh)
     # a flat sample's given lights without intensities: the sample's mean normal held (found lamps have their wide
     # tilts taken out after the per-pixel solve instead, pixels.found_lamps_detail)
     tilt_held = flat is not None and given is None and known.source != "estimated" and s.lights.flat_mean_held

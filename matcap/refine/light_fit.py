@@ -17,14 +17,16 @@ from matcap.refine.settings import RefineSettings
 
 
 def _photo_normals(obs, mask, network, s_lum, report=None, positions=None, chunk: int = 1 << 18,
-                   max_misfit: float | None = None):
+                   max_misfit: float | None = None, ambient: np.ndarray | None = None):
     """Calibrated photometric-stereo normals (H, W, 3) of the photos ``obs`` (K, H, W, 3) under the lights
     ``s_lum`` (K, 3: direction times luminance irradiance at the object's centre): robust Lambertian least squares
     where a pixel is lit in 4 photos or more (and, given ``max_misfit``, where the Lambertian model's RMS misfit
     over the photos that light it is at most that share of its mean brightness), the networks' normals
     ``network`` elsewhere. ``positions`` (K, 3): the lamps' positions on the framing plane's world units (near
     lamps): each pixel then gets its own direction toward each lamp and the irradiance falls off with the squared
-    distance. They are both the start and the prior of the per-pixel stage. Returns (normals, report:
+    distance; ``ambient`` (4,): a room's light that every photo shares (see
+    :func:`matcap.refine.linear.solve_normals`), or None. They are both the start and the prior of the per-pixel
+    stage. Returns (normals, report:
     ``solved_fraction``); ``report`` given: reused (a downsampled copy). Pixels are solved ``chunk`` at a time."""
     from matcap.refine.linear import lambertian_shading, solve_normals
 
@@ -39,9 +41,10 @@ def _photo_normals(obs, mask, network, s_lum, report=None, positions=None, chunk
         r, c = rows[a:a + chunk], cols[a:a + chunk]
         lights = s_lum if positions is None else _near_vectors(s_lum, positions, centre, mask.shape, r, c)
         lum = _luminance(obs, r, c)
-        n, albedo, solved = solve_normals(lum, lights, network[r, c])
+        n, albedo, solved = solve_normals(lum, lights, network[r, c], ambient=ambient)
         if max_misfit is not None:
-            shade = np.clip(lambertian_shading(lights, n), 0.0, None) * albedo[None]
+            room = 0.0 if ambient is None else (ambient[0] + n.astype(np.float64) @ ambient[1:])[None]
+            shade = (np.clip(lambertian_shading(lights, n), 0.0, None) + room) * albedo[None]
             lit = shade > 0
             misfit = np.sqrt(((lum - shade) ** 2 * lit).sum(0) / np.maximum(lit.sum(0), 1))
             solved &= misfit <= max_misfit * np.maximum(lum.mean(0), 1e-6)

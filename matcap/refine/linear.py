@@ -99,10 +99,12 @@ def lambertian_shading(lights: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("kpi,pi->kp", lights, b) if lights.ndim == 3 else lights @ b.T
 
 
-def _weights(y: np.ndarray, shading: np.ndarray, c: float, shadow: float) -> np.ndarray:
+def _weights(y: np.ndarray, shading: np.ndarray, lamp: np.ndarray, c: float, shadow: float) -> np.ndarray:
+    """(K, P) robust weights of the observations ``y`` against the model's ``shading``: Cauchy of scale ``c``, and
+    0 where the lamp's own part ``lamp`` is below ``shadow`` times its largest (an attached shadow)."""
     res = y - shading
     w = 1.0 / (1.0 + (res / c) ** 2)
-    return w * (shading > shadow * max(float(shading.max()), 1e-12))
+    return w * (lamp > shadow * max(float(lamp.max()), 1e-12))
 
 
 def _resolve(b: np.ndarray, s: np.ndarray, prior: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -165,13 +167,13 @@ def factorize(luminance: np.ndarray, normal: np.ndarray, albedo: np.ndarray, con
     for _ in range(rounds):
         for _ in range(2):  # lights, pixels fixed
             s = _solve3(_outer_sum(w, b), (w * y) @ b)
-            w = _weights(y, s @ b.T, cauchy, shadow)
+            w = _weights(y, s @ b.T, s @ b.T, cauchy, shadow)
         for _ in range(2):  # pixels, lights fixed (pixels lit in fewer than 4 photos keep their value)
             b_new = _solve3(_outer_sum(w.T, s), (w * y).T @ s)
             ok = (w.sum(0) >= 3.5) & np.isfinite(b_new).all(axis=1)
             solved |= ok
             b = np.where(ok[:, None], b_new, b)
-            w = _weights(y, s @ b.T, cauchy, shadow)
+            w = _weights(y, s @ b.T, s @ b.T, cauchy, shadow)
         # the ambiguity: A b_p ~ |b_p| prior_p, weighted by how well each pixel is observed
         b, s = _resolve(b, s, prior, np.minimum(w.sum(0), k_count) / k_count * prior_w * solved)
     size = np.linalg.norm(b, axis=1)
@@ -185,31 +187,40 @@ def factorize(luminance: np.ndarray, normal: np.ndarray, albedo: np.ndarray, con
 
 
 def solve_normals(luminance: np.ndarray, lights: np.ndarray, normal: np.ndarray, rounds: int = 4,
-                  cauchy: float = 0.1, shadow: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  cauchy: float = 0.1, shadow: float = 0.02,
+                  ambient: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust Lambertian normals of P pixels given the lights: calibrated photometric stereo.
 
     luminance: (K, P); lights: (K, 3) irradiance times direction (as :class:`LinearFit` gives them, in the units
     of ``luminance``), or (K, P, 3) one such vector per pixel (lamps near enough for it to change across the
-    object); normal: (P, 3) start (kept where a pixel is lit in fewer than 4 photos). Returns (normal (P, 3) unit,
+    object); normal: (P, 3) start (kept where a pixel is lit in fewer than 4 photos); ambient: (4,) a room's light
+    shared by every photo, its irradiance at a normal n being ``ambient[0] + ambient[1:] . n`` (in the lights'
+    units; :func:`matcap.refine.known_lights.known_irradiance` finds it), or None (none): a pixel's luminance in a
+    photo that lights it is then ``|b| ambient[0] + b . (s_k + ambient[1:])``. Returns (normal (P, 3) unit,
     albedo (P,), solved (P,) bool).
     """
     y = np.asarray(luminance, np.float64)
     s = np.asarray(lights, np.float64)
     n0 = np.asarray(normal, np.float64)
-    shade = lambda b: lambertian_shading(s, b)  # noqa: E731
+    amb = np.zeros(4) if ambient is None else np.asarray(ambient, np.float64)
+    lit_by = s + amb[1:]  # the lamp and the room's linear part: what b multiplies
+    lamp = lambda b: lambertian_shading(s, b)  # noqa: E731
+    shade = lambda b: lambertian_shading(lit_by, b) + amb[0] * np.linalg.norm(b, axis=1)[None]  # noqa: E731
     if s.ndim == 3:
-        normal_eq = lambda w: (np.einsum("kp,kpi,kpj->pij", w, s, s), np.einsum("kp,kp,kpi->pi", w, y, s))  # noqa
+        normal_eq = lambda w, t: (np.einsum("kp,kpi,kpj->pij", w, lit_by, lit_by),  # noqa: E731
+                                  np.einsum("kp,kp,kpi->pi", w, t, lit_by))
     else:
-        normal_eq = lambda w: (_outer_sum(w.T, s), (w * y).T @ s)  # noqa: E731
+        normal_eq = lambda w, t: (_outer_sum(w.T, lit_by), (w * t).T @ lit_by)  # noqa: E731
     b = n0 * np.maximum(np.mean(y, axis=0) / np.maximum(np.mean(np.abs(shade(n0)), axis=0), 1e-9), 1e-6)[:, None]
-    w = _weights(y, shade(b), cauchy, shadow)
+    w = _weights(y, shade(b), lamp(b), cauchy, shadow)
     solved = np.zeros(len(n0), bool)
     for _ in range(rounds):
-        b_new = _solve3(*normal_eq(w))
+        # the room's constant part, |b| ambient[0], taken at the last round's albedo: the rest is linear in b
+        b_new = _solve3(*normal_eq(w, y - amb[0] * np.linalg.norm(b, axis=1)[None]))
         ok = (w.sum(0) >= 3.5) & np.isfinite(b_new).all(axis=1) & (b_new[:, 2] > 0)
         solved = ok
         b = np.where(ok[:, None], b_new, b)
-        w = _weights(y, shade(b), cauchy, shadow)
+        w = _weights(y, shade(b), lamp(b), cauchy, shadow)
     size = np.linalg.norm(b, axis=1)
     n = np.where(solved[:, None], b / np.maximum(size, 1e-12)[:, None], n0)
     return n.astype(np.float32), size.astype(np.float32), solved

@@ -39,10 +39,8 @@ class LossSettings:
     from the point, which the model does not know, and leaves it the room's light): it bounds the prediction from
     above only and adds no residual. 0: none. Lights the fit estimates (a flat sample's lamps
     found from their falloff too) go without it: an error of the lights would pass for shadow. So does a flat
-    sample under given lights: a plane facing the camera hides no lamp from itself."""
-    shadow_light_fit: float = 0.3
-    """The same rule while the lights' intensities and the ambient are fitted, before the ambient is known: there an
-    observation below this share of the whole prediction (the ambient's part included) counts as cast shadow."""
+    sample under given lights: a plane facing the camera hides no lamp from itself. While the lights' intensities
+    and the ambient are fitted, the ambient's part is that of their Lambertian start."""
     variation_threshold: float = 0.08
     """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
     less, down to 0.1, and a warning names the share of such pixels)."""
