@@ -49,7 +49,7 @@ def _place_lamps(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarr
 
 def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.ndarray,
                      relative: np.ndarray | None = None, rounds: int = 4, ambient_order: int | None = 1,
-                     pixels: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+                     pixels: int = 8192, min_share: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Per-photo irradiance (K,) of lights whose directions are known, and a room's light that every photo shares,
     as the start of the light fit. The room's light first (:func:`_room_light`, on up to ``pixels`` pixels
     solved under equal lamps); then robust Lambertian normals under the lights and that room's light
@@ -60,7 +60,8 @@ def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.n
     luminance: (K, P) photo luminance; directions: (K, 3) unit; normal: (P, 3) start normals (the networks');
     relative: (K,) given relative irradiances (only their overall scale is found, and no room light) or None;
     ambient_order: the room's irradiance at a normal n is ``a[0]`` (order 0) or ``a[0] + a[1:] . n`` (order 1),
-    or None: none (a flat sample's photos cannot tell it from each photo's intensity). The overall scale is fixed
+    or None: none (a flat sample's photos cannot tell it from each photo's intensity); min_share: a room's light
+    whose ``a[0]`` is below this share of the mean irradiance is taken as none. The overall scale is fixed
     so that the mean irradiance is the photos' mean luminance times pi (the albedo absorbs the rest). Returns
     (irradiance (K,), the room's light ``a`` (4,) in the irradiance's units; zeros where none).
     """
@@ -79,8 +80,10 @@ def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.n
         if solved.sum() >= 16:
             pick = np.flatnonzero(solved)[::max(1, int(solved.sum()) // pixels)]
             room = _room_light(y[:, pick], d, n[pick] * alb[pick, None], level, (1, 4)[min(ambient_order, 1)])
+            if room[0] < min_share * level:
+                room = np.zeros(4)
     for _ in range(rounds):
-        n, alb, solved = solve_normals(y, d * e[:, None], normal, ambient=room)
+        n, alb, solved = solve_normals(y, d * e[:, None], normal, ambient=room if room.any() else None)
         if solved.sum() < 16:
             break
         n64, alb64 = n[solved].astype(np.float64), alb[solved].astype(np.float64)
@@ -265,26 +268,29 @@ def _known_light_stage(torch, ph: _Photos, copy: tuple, known, flat: dict | None
     # a room's light (the photos' shared part): an object's only, a plane's photos cannot tell it from the lamps'
     room_order = None if flat is not None or s.model.ambient == "none" else s.lights.known_ambient_order
     irr, room = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, guess_l[rows_l, cols_l],
-                                 None if given is None else given @ luma, ambient_order=room_order)
+                                 None if given is None else given @ luma, ambient_order=room_order,
+                                 min_share=s.lights.room_share)
+    room_found = bool(room.any())
     s_lum = directions * irr[:, None]
     # a flat sample keeps the misfit Lambertian normals: the networks' are a poorer fallback on a swatch's relief
     misfit = s.priors.lambertian_misfit if flat is None else None
     start, photo_report = _photo_normals(obs, mask, guess, s_lum, positions=known.positions, max_misfit=misfit,
-                                         ambient=room)
+                                         ambient=room if room_found else None)
     arrays = dict(arrays, normal=start)
     if hw_l == (h, w):
         arr_l, start_l = arrays, start
     else:
         start_l, _ = _photo_normals(obs_l, mask_l, guess_l, s_lum, photo_report, positions=known.positions,
-                                    max_misfit=misfit, ambient=room)
+                                    max_misfit=misfit, ambient=room if room_found else None)
         arr_l = dict(arr_l, normal=start_l)
     idx = _known_subsample(mask_l, s, rng)
     # no cast-shadow rule for a flat sample (a plane facing the camera shades itself only through its small
     # relief) nor for found lamps (their errors would pass for shadow)
     shadow = 0.0 if known.source == "estimated" or flat is not None else s.loss.shadow
-    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l)
+    prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l,
+                    shadow=0.0 if room_found else s.loss.shadow_light_fit if shadow > 0 else 0.0)
     lights = _init_lights(torch, prob, s, device, directions)
-    if given is None and room_order is not None:  # each photo's intensity and the room's light: the Lambertian's
+    if given is None and room_found:  # each photo's intensity and the room's light: the Lambertian's
         lights = _lights_with_room(torch, prob, lights, irr, room)
     if inv_distance is not None:
         lights = _to_near(torch, lights, torch.as_tensor(centre, dtype=torch.float32, device=device))
@@ -303,7 +309,7 @@ def _known_light_stage(torch, ph: _Photos, copy: tuple, known, flat: dict | None
             amb = np.asarray(known.ambient, np.float64)
             amb = amb if s.model.ambient == "per-image" else amb.mean(0, keepdims=True)
             lights.sh = torch.as_tensor(amb, dtype=torch.float32, device=device) * offset.exp()
-    if shadow > 0:  # the cast-shadow rule of the per-pixel stage, the ambient's part at its start
+    if shadow > 0 and room_found:  # the cast-shadow rule of the per-pixel stage, the ambient's part at its start
         prob = _Problem(torch, obs_l, mask_l, arr_l, w_l, sat_level, device, idx, start_l, shadow=shadow,
                         ambient_sh=lights.sh)
     # a flat sample's given lights without intensities: the sample's mean normal held (found lamps have their wide

@@ -40,7 +40,12 @@ class LossSettings:
     above only and adds no residual. 0: none. Lights the fit estimates (a flat sample's lamps
     found from their falloff too) go without it: an error of the lights would pass for shadow. So does a flat
     sample under given lights: a plane facing the camera hides no lamp from itself. While the lights' intensities
-    and the ambient are fitted, the ambient's part is that of their Lambertian start."""
+    and the ambient are fitted, the ambient's part is that of their Lambertian start where it found a room's light
+    (:attr:`LightSettings.room_share`)."""
+    shadow_light_fit: float = 0.3
+    """The same rule while the lights' intensities and the ambient are fitted where their start found no room's
+    light: there an observation below this share of the whole prediction (the ambient's part included) counts as
+    cast shadow."""
     variation_threshold: float = 0.08
     """Per-pixel light variation (std / mean over photos) below which a pixel is weakly constrained (it weighs
     less, down to 0.1, and a warning names the share of such pixels)."""
@@ -91,6 +96,10 @@ class LightStageSettings:
     """Adam step size of the light parameters (directions, log intensities, ambient, inverse distances)."""
     lr_pixel: float = 0.05
     """Adam step size of the subsample's map parameters during the light fit."""
+    room_share: float = 0.1
+    """Known directions: the least room's light (its constant part, as a share of the lamps' mean irradiance) that
+    the Lambertian start keeps; a weaker one is taken as none (the start's normals and intensities then have no
+    room term, and the light fit finds the ambient from zero)."""
     known_ambient_order: int = 1
     """The highest order of the SH ambient fitted there: 0 its constant term alone, 1 also the linear terms (a room's
     light seen by a glossy surface changes with the normal), 2 all (they bend to fit cast shadows and
