@@ -4,6 +4,7 @@
     python benchmarks/matte_ball_check.py --unequal 0          # lamps of equal power
     python benchmarks/matte_ball_check.py --brdf principled    # rendered with the fit's own model (a control)
     python benchmarks/matte_ball_check.py --capture ../shared/data/captures/uw_gray --max-side 160   # a real ball
+    python benchmarks/matte_ball_check.py --capture ../shared/data/captures/uw_gray --lights rig.json  # its rig's
 
 A Lambertian sphere (:func:`matcap.refine.synthetic.matte_ball`: a DiLiGenT-ball-like capture, 16 distant lamps
 within 45 degrees of the view axis, lamps of unequal power (``--unequal``), a slightly varying grey-brown albedo, a
@@ -14,7 +15,9 @@ a capture folder and run through the bundled networks (``matcap.estimate.estimat
 PSNR, the check, and the fit given the true lamps (``lights.txt``: the known-lights fit).
 
 ``--capture FOLDER`` (repeatable) runs photographed balls instead: a folder of photos whose mask is the ball's
-disc, with a ``lights.txt`` (the UW gray ball: 12 photos, 8-bit read as linear), shrunk to ``--max-side``.
+disc, with a ``lights.txt`` (the UW gray ball: 12 photos, 8-bit read as linear), shrunk to ``--max-side``;
+``--lights FILE`` gives the known-lights fit that file instead (a calibration's ``rig.json``: ``matcap calibrate
+../shared/data/captures/uw_chrome --out rig.json``); the light columns still compare with ``lights.txt``.
 """
 from __future__ import annotations
 
@@ -40,9 +43,10 @@ def _settings(items):
 
 
 def run_ball(folder: Path, models, settings, true_dirs=None, cache: Path | None = None,
-             max_side: int | None = None) -> dict:
+             max_side: int | None = None, lights_file: Path | None = None) -> dict:
     """Networks then the fit on the capture in ``folder`` (photos shrunk to ``max_side``), lights estimated and,
-    where ``folder`` has a ``lights.txt``, given: {network, fit, fit_known, light_median, light_max, psnr, report}."""
+    where ``folder`` has a ``lights.txt``, given (``lights_file`` where given, else that ``lights.txt``):
+    {network, fit, fit_known, light_median, light_max, psnr, report}."""
     from matcap.estimate import estimate
     from matcap.evaluation.metrics import analytic_sphere
     from matcap.photos import load_capture
@@ -67,7 +71,8 @@ def run_ball(folder: Path, models, settings, true_dirs=None, cache: Path | None 
     fit_known = known = None
     if (folder / "lights.txt").is_file():
         known = read_light_file(folder / "lights.txt", [Path(f).name for f in cap.files])
-        fit_known = _mean_err(refine(cap.images, maps, settings, lights=known).maps.normal, truth, scored)
+        given = known if lights_file is None else read_light_file(lights_file, [Path(f).name for f in cap.files])
+        fit_known = _mean_err(refine(cap.images, maps, settings, lights=given).maps.normal, truth, scored)
     out = {"network": _mean_err(maps.normal, truth, scored), "fit": _mean_err(res.maps.normal, truth, scored),
            "fit_known": fit_known,
            "psnr": res.report["psnr_db_mean"], "report": res.report, "maps": maps, "images": cap.images}
@@ -109,6 +114,8 @@ def main(argv=None) -> int:
     ap.add_argument("--keep", default=None, help="write the captures (and cached network maps) under this folder")
     ap.add_argument("--capture", action="append", help="a photographed ball's folder instead (repeatable)")
     ap.add_argument("--max-side", type=int, default=160, help="--capture: photos shrunk to this side")
+    ap.add_argument("--lights", type=Path, default=None,
+                    help="--capture: the light file of the known-lights fit (default: each folder's lights.txt)")
     args = ap.parse_args(argv)
     import torch
 
@@ -132,7 +139,7 @@ def main(argv=None) -> int:
     for name, folder, dirs, max_side in _balls(args, root):
         cache = folder.parent / f"{folder.name}.maps.npz" if args.keep else None
         t0 = time.perf_counter()
-        r = run_ball(folder, models, settings, dirs, cache, max_side)
+        r = run_ball(folder, models, settings, dirs, cache, max_side, args.lights)
         lin = r["report"].get("linear") or {}
         check = "kept: " + str(lin.get("reason")) if r["report"]["kept_network_maps"] else "fitted"
         rows.append((r["network"], r["fit"], r["fit_known"], r["light_median"], r["light_max"], r["psnr"]))
