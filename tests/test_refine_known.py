@@ -206,10 +206,13 @@ def test_known_irradiance_finds_a_rooms_light():
     albedo = rng.uniform(0.3, 0.8, len(n))
     y = albedo[None] * (e[:, None] * np.clip(n @ d.T, 0.0, None).T + (room[0] + n @ room[1:])[None])
     start = S.perturb(truth).normal[truth.mask]
-    irr, amb = known_irradiance(y, d, start)
+    irr, amb, share = known_irradiance(y, d, start)
     f = irr.mean()
     np.testing.assert_allclose(irr / f, e, atol=0.02)
     np.testing.assert_allclose(amb / f, room, atol=1e-3)
+    assert share == pytest.approx(0.15, abs=1e-3)
+    _, gated, gated_share = known_irradiance(y, d, start, min_share=0.2)  # below the least share kept: none
+    assert not gated.any() and gated_share == pytest.approx(share, abs=1e-9)
 
     def error(ambient, lights):
         got, _, solved = solve_normals(y, d * lights[:, None], start, ambient=ambient)
@@ -217,7 +220,8 @@ def test_known_irradiance_finds_a_rooms_light():
         return np.degrees(np.arccos(np.clip((got * n).sum(1), -1.0, 1.0))).mean()
 
     assert error(amb, irr) < 1.0
-    plain, _ = known_irradiance(y, d, start, ambient_order=None)
+    plain, _, none = known_irradiance(y, d, start, ambient_order=None)
+    assert none is None
     assert error(None, plain) > 8.0
 
 

@@ -213,6 +213,7 @@ def _refine_known(torch, images, maps: MaterialMaps, s: RefineSettings, progress
                    "mean_normal_held": stage.tilt_held,
                    "base_level": round(stage.level, 4) if stage.level_free else None,
                    "power_held": stage.power_held, "solved_fraction": stage.solved_fraction,
+                   "room_share": stage.room_share, "room_kept": stage.room_kept,
                    **({"found_lamps_moved_deg": moved} if found else {})},
         **({"flat": flat} if flat is not None else {}),
         "psnr_db": [round(p, 3) for p in out.psnr],

@@ -49,7 +49,7 @@ def _place_lamps(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarr
 
 def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.ndarray,
                      relative: np.ndarray | None = None, rounds: int = 4, ambient_order: int | None = 1,
-                     pixels: int = 8192, min_share: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                     pixels: int = 8192, min_share: float = 0.0) -> tuple[np.ndarray, np.ndarray, float | None]:
     """Per-photo irradiance (K,) of lights whose directions are known, and a room's light that every photo shares,
     as the start of the light fit. The room's light first (:func:`_room_light`, on up to ``pixels`` pixels
     solved under equal lamps); then robust Lambertian normals under the lights and that room's light
@@ -63,24 +63,26 @@ def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.n
     or None: none (a flat sample's photos cannot tell it from each photo's intensity); min_share: a room's light
     whose ``a[0]`` is below this share of the mean irradiance is taken as none. The overall scale is fixed
     so that the mean irradiance is the photos' mean luminance times pi (the albedo absorbs the rest). Returns
-    (irradiance (K,), the room's light ``a`` (4,) in the irradiance's units; zeros where none).
+    (irradiance (K,), the room's light ``a`` (4,) in the irradiance's units (zeros where none), the share of the
+    mean irradiance that the room's light found had, ``a[0]`` over it, before ``min_share`` (None: not estimated)).
     """
     from matcap.refine.linear import solve_normals
 
     y = np.asarray(luminance, np.float64)
     d = np.asarray(directions, np.float64)
     level = max(float(y.mean()) * math.pi, 1e-9)
-    room = np.zeros(4)
+    room, share = np.zeros(4), None
     if relative is not None:
         rel = np.asarray(relative, np.float64)
-        return rel * level / max(float(rel.mean()), 1e-12), room
+        return rel * level / max(float(rel.mean()), 1e-12), room, share
     e = np.full(len(d), level)
     if ambient_order is not None:
         n, alb, solved = solve_normals(y, d * e[:, None], normal)
         if solved.sum() >= 16:
             pick = np.flatnonzero(solved)[::max(1, int(solved.sum()) // pixels)]
             room = _room_light(y[:, pick], d, n[pick] * alb[pick, None], level, (1, 4)[min(ambient_order, 1)])
-            if room[0] < min_share * level:
+            share = float(room[0]) / level
+            if share < min_share:
                 room = np.zeros(4)
     for _ in range(rounds):
         n, alb, solved = solve_normals(y, d * e[:, None], normal, ambient=room if room.any() else None)
@@ -95,7 +97,7 @@ def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.n
         e_new = np.clip(np.where(den > 1e-12, num / np.maximum(den, 1e-12), e), 1e-6, None)
         factor = level / e_new.mean()
         e, room = e_new * factor, room * factor
-    return e, room
+    return e, room, share
 
 
 def _room_light(y: np.ndarray, d: np.ndarray, b: np.ndarray, level: float, terms: int,
@@ -227,6 +229,8 @@ class _KnownLightStage:
     power_held: bool
     iters: int
     solved_fraction: float
+    room_share: float | None  # the room's light the start found, over the lamps' mean irradiance (None: not sought)
+    room_kept: bool  # at least lights.room_share: the start, the normals and the light fit took it
 
 
 def _known_light_stage(torch, ph: _Photos, copy: tuple, known, flat: dict | None, s: RefineSettings, bar, rng,
@@ -267,7 +271,7 @@ def _known_light_stage(torch, ph: _Photos, copy: tuple, known, flat: dict | None
     guess_l = arr_l["normal"] if flat is None else _plane_normals(mask_l)
     # a room's light (the photos' shared part): an object's only, a plane's photos cannot tell it from the lamps'
     room_order = None if flat is not None or s.model.ambient == "none" else s.lights.known_ambient_order
-    irr, room = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, guess_l[rows_l, cols_l],
+    irr, room, room_share = known_irradiance(_luminance(obs_l, rows_l, cols_l), directions, guess_l[rows_l, cols_l],
                                  None if given is None else given @ luma, ambient_order=room_order,
                                  min_share=s.lights.room_share)
     room_found = bool(room.any())
@@ -336,4 +340,5 @@ def _known_light_stage(torch, ph: _Photos, copy: tuple, known, flat: dict | None
         if level_free:  # the per-pixel solve's prior: the networks' base colour at the level the photos set
             arrays = dict(arrays, base=np.clip(arrays["base"] * level, 0.0, 1.0).astype(np.float32))
     return _KnownLightStage(lights, arrays, start, arr_l, start_l, shadow, fitted, ambient_free, ambient, level,
-                            level_free, tilt_held, power_held, light_iters, photo_report["solved_fraction"])
+                            level_free, tilt_held, power_held, light_iters, photo_report["solved_fraction"],
+                            None if room_share is None else round(room_share, 4), room_found)
