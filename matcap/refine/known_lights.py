@@ -49,7 +49,7 @@ def _place_lamps(torch, obs, mask, weight, sat_level, arrays: dict[str, np.ndarr
 
 def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.ndarray,
                      relative: np.ndarray | None = None, rounds: int = 4, ambient_order: int | None = 1,
-                     pixels: int = 8192, min_share: float = 0.0) -> tuple[np.ndarray, np.ndarray, float | None]:
+                     pixels: int = 2048, min_share: float = 0.0) -> tuple[np.ndarray, np.ndarray, float | None]:
     """Per-photo irradiance (K,) of lights whose directions are known, and a room's light that every photo shares,
     as the start of the light fit. The room's light first (:func:`_room_light`, on up to ``pixels`` pixels
     solved under equal lamps); then robust Lambertian normals under the lights and that room's light
@@ -141,32 +141,42 @@ def _room_light(y: np.ndarray, d: np.ndarray, b: np.ndarray, level: float, terms
     for _ in range(iters):
         w = 1.0 / (1.0 + ((y - pred) / scale) ** 2)
         r = y - pred
-        # d pred / d b_p (K, P, 3); d pred / d e_k: photo k's own column; d pred / d a: the room's terms (P, terms)
-        jb = (e[:, None] * (cos > 0))[..., None] * d[:, None, :] + amb[1:] \
-            + amb[0] * (b / np.maximum(size, 1e-12)[:, None])
+        # d pred / d b_p = lit_kp d_k + c_p (lit = e_k where b_p faces light k, else 0; c_p the room's part, the
+        # same in every photo); d pred / d e_k: photo k's own column; d pred / d a: the room's terms (P, terms)
+        lit = e[:, None] * (cos > 0)
+        c = amb[1:] + amb[0] * (b / np.maximum(size, 1e-12)[:, None])  # (P, 3)
         room = np.concatenate([size[:, None], b], 1)[:, :terms]
         je = np.clip(cos, 0.0, None)
-        h_pp = np.einsum("kp,kpi,kpj->pij", w, jb, jb)
-        h_pg = np.concatenate([np.einsum("kp,kpi,kp->pik", w, jb, je), np.einsum("kp,kpi,pj->pij", w, jb, room)], 2)
+        outer = (d[:, :, None] * d[:, None, :]).reshape(k_count, 9)
+        w_sum, w_lit_d = w.sum(0), (w * lit).T @ d  # (P,), (P, 3): sum_k w lit d_k
+        h_pp = ((w * lit ** 2).T @ outer).reshape(-1, 3, 3) + w_lit_d[:, :, None] * c[:, None, :] \
+            + c[:, :, None] * w_lit_d[:, None, :] + w_sum[:, None, None] * c[:, :, None] * c[:, None, :]
+        w_je = w * je
+        h_pk = (w_je * lit).T[:, None, :] * d.T[None] + c[:, :, None] * w_je.T[:, None, :]  # (P, 3, K)
+        w_jb = w_lit_d + w_sum[:, None] * c  # sum_k w d pred / d b_p, (P, 3)
+        h_pg = np.concatenate([h_pk, w_jb[:, :, None] * room[:, None, :]], 2)
         h_gg = np.zeros((g_count, g_count))
-        h_gg[photo, photo] = (w * je ** 2).sum(1)
-        h_gg[:k_count, k_count:] = np.einsum("kp,kp,pj->kj", w, je, room)
+        h_gg[photo, photo] = (w_je * je).sum(1)
+        h_gg[:k_count, k_count:] = w_je @ room
         h_gg[k_count:, :k_count] = h_gg[:k_count, k_count:].T
-        h_gg[k_count:, k_count:] = np.einsum("p,pi,pj->ij", w.sum(0), room, room)
-        g_p = np.einsum("kp,kp,kpi->pi", w, r, jb)
-        g_g = np.concatenate([(w * r * je).sum(1), np.einsum("kp,pj->j", w * r, room)])
+        h_gg[k_count:, k_count:] = (room * w_sum[:, None]).T @ room
+        wr = w * r
+        g_p = (wr * lit).T @ d + wr.sum(0)[:, None] * c
+        g_g = np.concatenate([(wr * je).sum(1), wr.sum(0) @ room])
+        flat_pg = h_pg.reshape(-1, g_count)
         base = cost(e, amb, b, w)
         for _ in range(8):  # damping raised until the step lowers the weighted cost
             inv = np.linalg.inv(h_pp + lam * (np.trace(h_pp, axis1=1, axis2=2)[:, None, None] / 3.0 + 1e-12)
                                 * np.eye(3))
-            q = np.einsum("pij,pjg->pig", inv, h_pg)  # H_pp^-1 H_pg
-            reduced = h_gg + lam * np.diag(np.diag(h_gg) + 1e-12) - np.einsum("pig,pih->gh", h_pg, q)
-            step = np.linalg.lstsq(reduced, g_g - np.einsum("pig,pi->g", q, g_p), rcond=None)[0]
+            q = np.matmul(inv, h_pg)  # H_pp^-1 H_pg, (P, 3, G)
+            flat_q = q.reshape(-1, g_count)
+            reduced = h_gg + lam * np.diag(np.diag(h_gg) + 1e-12) - flat_pg.T @ flat_q
+            step = np.linalg.lstsq(reduced, g_g - flat_q.T @ g_p.reshape(-1), rcond=None)[0]
             e_new = np.clip(e + step[:k_count], 1e-9, None)
             amb_new = amb.copy()
             amb_new[:terms] += step[k_count:]
             amb_new = feasible(amb_new)
-            b_new = b + np.einsum("pij,pj->pi", inv, g_p) - np.einsum("pig,g->pi", q, step)
+            b_new = b + np.matmul(inv, g_p[:, :, None])[:, :, 0] - q @ step
             f = level / e_new.mean()  # the gauge: the mean irradiance held, the albedo taking the rest
             e_new, amb_new, b_new = e_new * f, amb_new * f, b_new / f
             if cost(e_new, amb_new, b_new, w) < base:
