@@ -260,6 +260,21 @@ def test_a_note_says_when_the_prior_hardly_tells_bumps_from_dents():
     assert fit_notes(result(0.1), s) == [] and fit_notes(result(None), s) == []
 
 
+def test_a_note_says_when_a_rooms_light_stayed_on():
+    from types import SimpleNamespace
+
+    from matcap.commands.capture import fit_notes
+
+    def result(share, kept):
+        return SimpleNamespace(warning=None, report={"kept_network_maps": False,
+                                                     "lights": {"room_share": share, "room_kept": kept}})
+
+    (note,) = fit_notes(result(0.1987, True), RefineSettings())
+    assert note.startswith("note: a room's light stayed on in every photo (about 20% of the lamps' light)"), note
+    assert fit_notes(result(0.04, False), RefineSettings()) == []
+    assert fit_notes(result(None, False), RefineSettings()) == []
+
+
 def test_lights_that_turn_most_normals_away_are_not_trusted():
     """A bumpy plane (spread 0.09, residual 2 %: the photos are fine) but a prior unrelated to the surface
     (random normals): the matrix it picks gives lights under which almost no pixel faces the camera."""

@@ -117,9 +117,9 @@ def fit_notes(result, settings) -> list[str]:
     """The lines `matcap capture` and `matcap refine` print once the fit is done (``result``: a
     :class:`matcap.refine.RefineResult`, ``settings`` those it ran with): its light-variation warning; where the
     lamps were found near, how near; where the relief's sign was left to a prior that hardly tells (its twin ratio
-    at least ``checks.twin``), so; where the networks' maps were kept, why (the fit's reasons) and what to do:
-    give the lights, or add a candidate light model the settings left off where only the Lambertian part of the
-    check failed."""
+    at least ``checks.twin``), so; where known lights' photos share a room's light the fit took in, how much; where
+    the networks' maps were kept, why (the fit's reasons) and what to do: give the lights, or add a candidate light
+    model the settings left off where only the Lambertian part of the check failed."""
     from matcap.refine.estimated_lights import candidate_models
 
     lines = [f"warning: {result.warning}"] if result.warning else []
@@ -128,6 +128,11 @@ def fit_notes(result, settings) -> list[str]:
     if lin.get("check") == "near lamps" and radii is not None:
         lines.append(f"note: the lamps were near the object (median {radii:.1f} object radii away): fitted as point "
                      f"lights, their positions in lights.json")
+    given = result.report.get("lights") or {}
+    if given.get("room_kept"):
+        lines.append(f"note: a room's light stayed on in every photo (about {given['room_share']:.0%} of the lamps' "
+                     f"light): the fit models it, but the photos hold less of the lamps' shading; dim it for "
+                     f"sharper maps")
     twin = lin.get("twin_ratio")
     if not result.report.get("kept_network_maps") and twin is not None and twin >= settings.checks.twin:
         lines.append(f"note: with no outline to go by, bumps and dents give the same photos under lights not given, "
