@@ -76,16 +76,18 @@ def known_irradiance(luminance: np.ndarray, directions: np.ndarray, normal: np.n
         rel = np.asarray(relative, np.float64)
         return rel * level / max(float(rel.mean()), 1e-12), room, share
     e = np.full(len(d), level)
-    if ambient_order is not None:
-        n, alb, solved = solve_normals(y, d * e[:, None], normal)
-        if solved.sum() >= 16:
-            pick = np.flatnonzero(solved)[::max(1, int(solved.sum()) // pixels)]
-            room = _room_light(y[:, pick], d, n[pick] * alb[pick, None], level, (1, 4)[min(ambient_order, 1)])
-            share = float(room[0]) / level
-            if share < min_share:
-                room = np.zeros(4)
-    for _ in range(rounds):
-        n, alb, solved = solve_normals(y, d * e[:, None], normal, ambient=room if room.any() else None)
+    n, alb, solved = solve_normals(y, d * e[:, None], normal)
+    if ambient_order is not None and solved.sum() >= 16:
+        pick = np.flatnonzero(solved)[::max(1, int(solved.sum()) // pixels)]
+        room = _room_light(y[:, pick], d, n[pick] * alb[pick, None], level, (1, 4)[min(ambient_order, 1)])
+        share = float(room[0]) / level
+        if share < min_share:
+            room = np.zeros(4)
+        else:
+            n, alb, solved = solve_normals(y, d * e[:, None], normal, ambient=room)
+    for i in range(rounds):
+        if i > 0:  # the first round's normals: those under equal lamps (and the room's light) above
+            n, alb, solved = solve_normals(y, d * e[:, None], normal, ambient=room if room.any() else None)
         if solved.sum() < 16:
             break
         n64, alb64 = n[solved].astype(np.float64), alb[solved].astype(np.float64)

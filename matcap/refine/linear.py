@@ -99,11 +99,14 @@ def lambertian_shading(lights: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("kpi,pi->kp", lights, b) if lights.ndim == 3 else lights @ b.T
 
 
-def _weights(y: np.ndarray, shading: np.ndarray, lamp: np.ndarray, c: float, shadow: float) -> np.ndarray:
+def _weights(y: np.ndarray, shading: np.ndarray, c: float, shadow: float,
+             lamp: np.ndarray | None = None) -> np.ndarray:
     """(K, P) robust weights of the observations ``y`` against the model's ``shading``: Cauchy of scale ``c``, and
-    0 where the lamp's own part ``lamp`` is below ``shadow`` times its largest (an attached shadow)."""
+    0 where the lamp's own part ``lamp`` (None: the whole shading) is below ``shadow`` times its largest (an
+    attached shadow)."""
     res = y - shading
     w = 1.0 / (1.0 + (res / c) ** 2)
+    lamp = shading if lamp is None else lamp
     return w * (lamp > shadow * max(float(lamp.max()), 1e-12))
 
 
@@ -167,13 +170,13 @@ def factorize(luminance: np.ndarray, normal: np.ndarray, albedo: np.ndarray, con
     for _ in range(rounds):
         for _ in range(2):  # lights, pixels fixed
             s = _solve3(_outer_sum(w, b), (w * y) @ b)
-            w = _weights(y, s @ b.T, s @ b.T, cauchy, shadow)
+            w = _weights(y, s @ b.T, cauchy, shadow)
         for _ in range(2):  # pixels, lights fixed (pixels lit in fewer than 4 photos keep their value)
             b_new = _solve3(_outer_sum(w.T, s), (w * y).T @ s)
             ok = (w.sum(0) >= 3.5) & np.isfinite(b_new).all(axis=1)
             solved |= ok
             b = np.where(ok[:, None], b_new, b)
-            w = _weights(y, s @ b.T, s @ b.T, cauchy, shadow)
+            w = _weights(y, s @ b.T, cauchy, shadow)
         # the ambiguity: A b_p ~ |b_p| prior_p, weighted by how well each pixel is observed
         b, s = _resolve(b, s, prior, np.minimum(w.sum(0), k_count) / k_count * prior_w * solved)
     size = np.linalg.norm(b, axis=1)
@@ -204,7 +207,8 @@ def solve_normals(luminance: np.ndarray, lights: np.ndarray, normal: np.ndarray,
     n0 = np.asarray(normal, np.float64)
     amb = np.zeros(4) if ambient is None else np.asarray(ambient, np.float64)
     lit_by = s + amb[1:]  # the lamp and the room's linear part: what b multiplies
-    lamp = lambda b: lambertian_shading(s, b)  # noqa: E731
+    # the lamp's own part, for the attached-shadow test: the whole shading where there is no room's light
+    lamp = (lambda b: None) if ambient is None else (lambda b: lambertian_shading(s, b))  # noqa: E731
     shade = lambda b: lambertian_shading(lit_by, b) + amb[0] * np.linalg.norm(b, axis=1)[None]  # noqa: E731
     if s.ndim == 3:
         normal_eq = lambda w, t: (np.einsum("kp,kpi,kpj->pij", w, lit_by, lit_by),  # noqa: E731
@@ -212,7 +216,7 @@ def solve_normals(luminance: np.ndarray, lights: np.ndarray, normal: np.ndarray,
     else:
         normal_eq = lambda w, t: (_outer_sum(w.T, lit_by), (w * t).T @ lit_by)  # noqa: E731
     b = n0 * np.maximum(np.mean(y, axis=0) / np.maximum(np.mean(np.abs(shade(n0)), axis=0), 1e-9), 1e-6)[:, None]
-    w = _weights(y, shade(b), lamp(b), cauchy, shadow)
+    w = _weights(y, shade(b), cauchy, shadow, lamp(b))
     solved = np.zeros(len(n0), bool)
     for _ in range(rounds):
         # the room's constant part, |b| ambient[0], taken at the last round's albedo: the rest is linear in b
@@ -220,7 +224,7 @@ def solve_normals(luminance: np.ndarray, lights: np.ndarray, normal: np.ndarray,
         ok = (w.sum(0) >= 3.5) & np.isfinite(b_new).all(axis=1) & (b_new[:, 2] > 0)
         solved = ok
         b = np.where(ok[:, None], b_new, b)
-        w = _weights(y, shade(b), lamp(b), cauchy, shadow)
+        w = _weights(y, shade(b), cauchy, shadow, lamp(b))
     size = np.linalg.norm(b, axis=1)
     n = np.where(solved[:, None], b / np.maximum(size, 1e-12)[:, None], n0)
     return n.astype(np.float32), size.astype(np.float32), solved
