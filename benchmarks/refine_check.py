@@ -146,6 +146,7 @@ def uw(args) -> None:
           "check: residual / inliers / spread / solved / twin ratio (then the near-lamp and Principled looks) |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []
+    rooms = []  # the room's light each known-lights start found (fit.json lights.room_share)
     for name in names:
         obj = load_uw_object(SHARED / f"uw_{name}")
         ref = least_squares_ps(obj.images, obj.light_dirs, obj.mask, obj.light_intensities).normal
@@ -167,6 +168,8 @@ def uw(args) -> None:
         t0 = time.perf_counter()
         res = refine(images, maps, _settings(args), lights=known)
         secs = time.perf_counter() - t0
+        if known is not None:
+            rooms.append(f"{name} {res.report['lights']['room_share']}")
         after = score(res.maps.normal)
         d = [_angle(_towards(e), l) for e, l in zip(res.lights, obj.light_dirs)]
         ho = float(np.mean([_held_out(images, j, maps, known, _settings(args))
@@ -177,6 +180,9 @@ def uw(args) -> None:
               flush=True)
     a = np.array([r[1:] for r in rows], float)
     print("| **mean** | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.2f} | {:.1f} | |".format(*a.mean(0)))
+    if rooms:
+        print(f"\nthe room's light the start found, over the lamps' mean irradiance (fit.json lights.room_share): "
+              f"{', '.join(rooms)}")
 
 
 def _held_out(images, j: int, maps, known, s) -> float:
